@@ -1,0 +1,45 @@
+"""Choose MuJoCo's OpenGL platform before MuJoCo is imported.
+
+MuJoCo binds its GL platform (``MUJOCO_GL``) once, at import time. On a headless machine
+the default (GLFW) cannot open a context, and asking for EGL where ``libEGL`` is missing
+makes ``import mujoco`` itself fail. This module picks a platform that can load, so that
+importing :mod:`d2a_envs` never breaks and the ``render`` backend can explain what to
+install when no GL library is present.
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import os
+
+# Debian packages that provide each platform's library.
+GL_PACKAGES = {"egl": "libegl1 libgl1-mesa-dri", "osmesa": "libosmesa6"}
+_LIBRARIES = {"egl": "EGL", "osmesa": "OSMesa"}
+
+
+def available_gl_platforms() -> list[str]:
+    """Headless GL platforms whose shared library can be found on this machine."""
+    return [name for name, lib in _LIBRARIES.items() if ctypes.util.find_library(lib)]
+
+
+def configure_mujoco_gl() -> str:
+    """Set ``MUJOCO_GL`` to a loadable headless platform unless the user already chose one.
+
+    Returns the value in force. With no GL library at all, GL is disabled so that
+    ``import mujoco`` still works; the raycast depth backend needs no GL.
+    """
+    if "MUJOCO_GL" not in os.environ:
+        platforms = available_gl_platforms()
+        os.environ["MUJOCO_GL"] = platforms[0] if platforms else "disable"
+    return os.environ["MUJOCO_GL"]
+
+
+def missing_gl_message() -> str:
+    """Explain how to make the render backend available on Debian/Ubuntu."""
+    packages = " ".join(GL_PACKAGES.values())
+    return (
+        f"the 'render' depth backend needs a headless OpenGL library (MUJOCO_GL="
+        f"{os.environ.get('MUJOCO_GL', '<unset>')!r}); install one with "
+        f"`apt-get install {packages}` and set MUJOCO_GL=egl or MUJOCO_GL=osmesa before "
+        f"importing mujoco, or use backend='raycast', which needs no GL"
+    )
