@@ -1,0 +1,42 @@
+"""Build D2A environments: the entry point behind every registered ``D2A-*`` id."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import gymnasium as gym
+
+from d2a_envs.defaults import SUITE_DEFAULTS
+from d2a_envs.sampling import CropBox
+from d2a_envs.suites.adroit import AdroitEnv
+from d2a_envs.suites.base import SuiteEnv
+from d2a_envs.suites.metaworld import MetaWorldEnv
+from d2a_envs.wrappers import PointCloudObservation
+
+_SUITE_ENVS: dict[str, type[SuiteEnv]] = {"metaworld": MetaWorldEnv, "adroit": AdroitEnv}
+
+
+def make_env(
+    suite: str,
+    task: str,
+    *,
+    cameras: str | Sequence[str] | None = None,
+    image_size: int | tuple[int, int] | None = None,
+    num_points: int | None = None,
+    crop_box: CropBox | Sequence[Sequence[float]] | None = None,
+    backend: str | None = None,
+    with_rgb: bool | None = None,
+    state_obs: bool = True,
+) -> gym.Env:
+    """A suite env with point-cloud observations; ``None`` arguments take the suite default.
+
+    Prefer ``gym.make("D2A-MetaWorld-Hammer-v0", **kwargs)``, which adds the 200-step time
+    limit; the keyword arguments are the same.
+    """
+    if suite not in _SUITE_ENVS:
+        raise ValueError(f"unknown suite {suite!r}; choose one of {sorted(_SUITE_ENVS)}")
+    config = SUITE_DEFAULTS[suite].updated(
+        cameras=cameras, image_size=image_size, num_points=num_points,
+        crop_box=crop_box, backend=backend, with_rgb=with_rgb,
+    )
+    return PointCloudObservation(_SUITE_ENVS[suite](task, state_obs=state_obs), config)

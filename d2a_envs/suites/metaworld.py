@@ -1,0 +1,75 @@
+"""Meta-World v3 tasks with goal-observable state, seeded layouts and no internal time limit."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import mujoco
+import numpy as np
+from metaworld.env_dict import ALL_V3_ENVIRONMENTS
+
+from d2a_envs.suites.base import SuiteEnv
+
+# Meta-World raises if stepped past its own horizon; episode length is left to TimeLimit.
+_UNLIMITED_PATH_LENGTH = 2**62
+
+
+class MetaWorldEnv(SuiteEnv):
+    """One Meta-World v3 task (e.g. ``hammer-v3``) with Gymnasium seeding semantics.
+
+    Meta-World ignores ``reset(seed=...)`` and by default freezes the object layout. Here
+    ``reset(seed=s)`` seeds the task's own generator, so the same ``s`` gives the same
+    layout and different seeds give different layouts; the goal position is observable
+    (the scripted experts need it).
+
+    Observation: ``agent_pos`` = end-effector xyz and gripper opening (4,), ``state`` = the
+    39-d Meta-World observation.
+    """
+
+    def __init__(self, task: str, state_obs: bool = True) -> None:
+        if task not in ALL_V3_ENVIRONMENTS:
+            raise ValueError(f"unknown Meta-World task {task!r}")
+        self.task = task
+        sim = ALL_V3_ENVIRONMENTS[task]()
+        sim._partially_observable = False
+        sim.__dict__.pop("sawyer_observation_space", None)  # cached with the goal hidden
+        sim._freeze_rand_vec = False
+        sim.seeded_rand_vec = True
+        sim._set_task_called = True
+        sim.max_path_length = _UNLIMITED_PATH_LENGTH
+        self._sim = sim
+        super().__init__(
+            agent_pos_dim=4,
+            state_dim=sim.sawyer_observation_space.shape[0],
+            action_space=sim.action_space,
+            state_obs=state_obs,
+        )
+
+    @property
+    def model(self) -> mujoco.MjModel:
+        return self._sim.model
+
+    @property
+    def data(self) -> mujoco.MjData:
+        return self._sim.data
+
+    @property
+    def simulator(self):
+        """The underlying Meta-World environment."""
+        return self._sim
+
+    def agent_pos(self) -> np.ndarray:
+        return self._sim._get_curr_obs_combined_no_goal()[:4]
+
+    def _reset_simulator(self, seed: int | None) -> tuple[np.ndarray, dict[str, Any]]:
+        if seed is not None:
+            self._sim.seed(seed)
+        state, info = self._sim.reset()
+        return state, dict(info)
+
+    def _step_simulator(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
+        state, reward, terminated, _, info = self._sim.step(action)
+        return state, float(reward), bool(terminated), dict(info)
+
+    def close(self) -> None:
+        self._sim.close()
