@@ -13,7 +13,7 @@ from d2a_envs.sensor import PointCloudConfig
 
 SUITE_DEFAULTS: dict[str, PointCloudConfig] = {
     "metaworld": PointCloudConfig(
-        cameras=("corner2",),
+        cameras=("corner4",),
         image_size=(128, 128),
         num_points=1024,
         crop_box=CropBox(low=(-0.6, 0.25, 0.005), high=(0.6, 0.97, 0.7)),

@@ -6,7 +6,7 @@ pair, so the Gymnasium wrapper and the TorchRL transform share one implementatio
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import mujoco
@@ -69,7 +69,6 @@ class PointCloudReading:
 
     points: np.ndarray
     num_in_crop: int
-    num_raw: int = field(default=0)
 
 
 class PointCloudSensor:
@@ -98,12 +97,16 @@ class PointCloudSensor:
             self._camera_ids[key] = [camera_id(model, name) for name in self.config.cameras]
         return self._camera_ids[key]
 
-    def fused_points(self, model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
-        """All points the cameras see, world frame, before cropping: (M, 3) or (M, 6)."""
+    def fused_points(self, model: mujoco.MjModel, data: mujoco.MjData, only_crop: bool = False) -> np.ndarray:
+        """Points the cameras see, world frame, before cropping: (M, 3) or (M, 6).
+
+        With ``only_crop`` the backend may skip pixels that cannot land in the crop box.
+        """
+        region = self.config.crop_box if only_crop else None
         height, width = self.config.image_size
         clouds = []
         for cam in self._ids_for(model):
-            image = self._backend.capture(model, data, cam, self.config.with_rgb)
+            image = self._backend.capture(model, data, cam, self.config.with_rgb, region)
             xyz = backproject(image.depth, camera_intrinsics(model, cam, width, height), camera_pose(data, cam))
             if self.config.with_rgb:
                 rgb = image.rgb.reshape(-1, 3)[np.isfinite(image.depth.reshape(-1))]
@@ -117,15 +120,15 @@ class PointCloudSensor:
         Raises ``ValueError`` when no point lies in the crop box: that is a configuration
         error (wrong box or cameras), not something to paper over.
         """
-        raw = self.fused_points(model, data)
+        raw = self.fused_points(model, data, only_crop=True)
         cropped = raw[self.config.crop_box.contains(raw)]
         if len(cropped) == 0:
             raise ValueError(
-                f"no point of the {len(raw)} seen by cameras {self.config.cameras} lies inside the crop box "
+                f"no point seen by cameras {self.config.cameras} lies inside the crop box "
                 f"low={self.config.crop_box.low}, high={self.config.crop_box.high}; check the box and cameras"
             )
         points = sample_to_size(cropped, self.config.num_points, rng).astype(np.float32)
-        return PointCloudReading(points=points, num_in_crop=len(cropped), num_raw=len(raw))
+        return PointCloudReading(points=points, num_in_crop=len(cropped))
 
     def close(self) -> None:
         """Release the depth backend (GL context, caches)."""

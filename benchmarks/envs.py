@@ -1,0 +1,72 @@
+"""Environment throughput: steps per second of each depth backend vs. state-only Meta-World.
+
+Every configuration runs the same whole-episode loop (reset, then random actions) in one
+process, one after the other, so that the ratios are measured side by side.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+
+import d2a_envs
+from d2a_envs.suites.metaworld import MetaWorldEnv
+
+
+@dataclass(frozen=True)
+class EnvBenchConfig:
+    """What ``d2a bench envs`` measures."""
+
+    task: str = "hammer"
+    steps: int = 100
+    seed: int = 0
+    backends: tuple[str, ...] = ("raycast", "render")
+    image_sizes: tuple[int, ...] = (84, 128)
+    point_counts: tuple[int, ...] = (512, 1024)
+
+
+def steps_per_second(env: gym.Env, steps: int, seed: int) -> float:
+    """Run ``steps`` random steps after a reset (reset not timed); resets again on episode end."""
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    actions = [env.action_space.sample() for _ in range(steps)]
+    start = time.perf_counter()
+    for action in actions:
+        _, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            env.reset()
+    return steps / (time.perf_counter() - start)
+
+
+def run(config: EnvBenchConfig = EnvBenchConfig()) -> list[dict[str, object]]:
+    """Measure every configuration; returns rows and prints a markdown table."""
+    spec = d2a_envs.get_task(config.task)
+    reference_env = gym.wrappers.TimeLimit(MetaWorldEnv(spec.task), d2a_envs.DEFAULT_MAX_EPISODE_STEPS)
+    reference = steps_per_second(reference_env, config.steps, config.seed)
+    rows: list[dict[str, object]] = [dict(env="state-only Meta-World", size="-", points="-", sps=reference)]
+    for backend, size, points in itertools.product(config.backends, config.image_sizes, config.point_counts):
+        try:
+            env = gym.make(spec.env_id, backend=backend, image_size=size, num_points=points)
+        except RuntimeError as error:  # no GL library for the render backend
+            print(f"skipping {backend}: {error}")
+            break
+        rows.append(dict(env=f"D2A {backend}", size=size, points=points, sps=steps_per_second(env, config.steps, config.seed)))
+        env.close()
+    print(f"\n{spec.env_id}, {config.steps} steps per row, one process\n")
+    print("| env | image | N | steps/s | x state-only |")
+    print("| --- | --- | --- | --- | --- |")
+    for row in rows:
+        print(f"| {row['env']} | {row['size']} | {row['points']} | {row['sps']:.1f} | {row['sps'] / reference:.3f} |")
+    by_key = {(r["env"], r["size"], r["points"]): r["sps"] for r in rows}
+    fast, slow = by_key.get(("D2A raycast", 128, 1024)), by_key.get(("D2A render", 128, 1024))
+    if fast and slow:
+        print(f"\nraycast / render at 128 px, N = 1024: {fast / slow:.1f}x")
+    return rows
+
+
+if __name__ == "__main__":
+    run()

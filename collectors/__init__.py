@@ -1,0 +1,1 @@
+"""Collectors: expert demonstrations, replay-buffer datasets and evaluation on TorchRL."""

@@ -1,0 +1,1 @@
+"""D2A command line (``d2a``)."""

@@ -1,0 +1,1 @@
+"""Agents: world model, MeanFlow policy, baselines (see the issues for the roadmap)."""
