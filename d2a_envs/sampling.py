@@ -58,7 +58,8 @@ def farthest_point_indices(points: np.ndarray, n_samples: int) -> np.ndarray:
     if n_samples == len(points):
         return np.arange(len(points))
     xyz = np.ascontiguousarray(points[:, :3], dtype=np.float32)
-    return fpsample.bucket_fps_kdline_sampling(xyz, n_samples, h=_FPS_TREE_HEIGHT, start_idx=0).astype(np.int64)
+    height = min(_FPS_TREE_HEIGHT, int(np.log2(len(points))))  # fpsample needs 2**h <= points
+    return fpsample.bucket_fps_kdline_sampling(xyz, n_samples, h=height, start_idx=0).astype(np.int64)
 
 
 def sample_to_size(points: np.ndarray, n_points: int, rng: np.random.Generator) -> np.ndarray:

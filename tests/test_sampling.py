@@ -39,6 +39,15 @@ def test_fps_covers_like_exact_fps_and_far_better_than_random(seed):
     assert radius < 0.7 * random
 
 
+@pytest.mark.parametrize("n_points, n_samples", [(2, 1), (9, 8), (33, 31)])
+def test_fps_on_tiny_clouds_matches_exact_fps(n_points, n_samples):
+    points = np.random.default_rng(n_points).random((n_points, 3))
+    ours = farthest_point_indices(points, n_samples)
+    assert len(set(ours.tolist())) == n_samples
+    exact = exact_fps(points, n_samples)
+    assert covering_radius(points, points[ours]) <= 1.05 * covering_radius(points, points[exact]) + 1e-9
+
+
 def test_fps_is_deterministic():
     points = np.random.default_rng(3).random((1000, 3))
     np.testing.assert_array_equal(farthest_point_indices(points, 100), farthest_point_indices(points, 100))

@@ -1,0 +1,234 @@
+"""The D2A Gymnasium environments: geometry against simulator truth, seeding, spaces, errors."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import d2a_envs
+from d2a_envs.camera import camera_id
+from d2a_envs.depth import RaycastDepth, RenderDepth
+from tests.conftest import requires_render
+
+SMALL = dict(image_size=64, num_points=128)  # fast settings for tests that do not look at geometry
+
+
+def make(task: str, **kwargs) -> gym.Env:
+    return gym.make(d2a_envs.get_task(task).env_id, **kwargs)
+
+
+@pytest.mark.parametrize("task", ["hammer", "push", "assembly", "basketball", "shelf-place"])
+def test_cloud_has_points_on_the_object_and_the_fingers(task):
+    """The object position comes from the state observation and the finger pads from MuJoCo
+    bodies: neither goes through the camera code."""
+    env = make(task)
+    for seed in (0, 1):
+        observation, _ = env.reset(seed=seed)
+        cloud, state = observation["point_cloud"], observation["state"]
+        object_distance = np.linalg.norm(cloud - state[4:7], axis=1)
+        # Body origins sit inside the objects: the nearest visible surface is a few cm away.
+        assert object_distance.min() < 0.03, f"{task} seed {seed}: no point near the object"
+        assert (object_distance < 0.05).sum() >= 5
+        data = env.unwrapped.data
+        for pad in ("leftpad", "rightpad"):
+            pad_distance = np.linalg.norm(cloud - data.body(pad).xpos, axis=1)
+            assert pad_distance.min() < 0.02, f"{task}: no point near the gripper's {pad}"
+    env.close()
+
+
+def test_cloud_follows_the_moving_gripper():
+    env = make("reach")
+    observation, _ = env.reset(seed=0)
+    old_hand, before = observation["agent_pos"][:3], observation["point_cloud"]
+    for _ in range(15):
+        observation, *_ = env.step(np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32))  # move +x
+    new_hand, after = observation["agent_pos"][:3], observation["point_cloud"]
+    assert new_hand[0] - old_hand[0] > 0.05
+
+    def near(cloud, point):
+        return int((np.linalg.norm(cloud - point, axis=1) < 0.06).sum())
+
+    assert near(after, new_hand) >= 5
+    assert near(after, old_hand) < near(before, old_hand)
+
+
+def test_same_seed_same_cloud_different_seed_different_layout():
+    env = make("push", **SMALL)
+    first, _ = env.reset(seed=7)
+    env.step(env.action_space.sample())
+    again, _ = env.reset(seed=7)
+    other, _ = env.reset(seed=8)
+    np.testing.assert_array_equal(first["point_cloud"], again["point_cloud"])
+    np.testing.assert_array_equal(first["state"], again["state"])
+    assert not np.allclose(first["state"][4:7], other["state"][4:7])  # the puck moved
+    assert not np.array_equal(first["point_cloud"], other["point_cloud"])
+
+
+def test_unseeded_resets_give_new_layouts():
+    env = make("push", **SMALL)
+    env.reset(seed=0)
+    positions = {tuple(env.reset()[0]["state"][4:7].round(4)) for _ in range(3)}
+    assert len(positions) == 3
+
+
+def test_points_respect_a_custom_crop_box_and_fill_by_resampling():
+    box = ((-0.1, 0.5, 0.02), (0.1, 0.7, 0.2))  # a small box around the hand's start
+    env = make("push", crop_box=box, num_points=2048)
+    observation, info = env.reset(seed=0)
+    cloud = observation["point_cloud"]
+    assert cloud.shape == (2048, 3)
+    assert np.all(cloud >= np.array(box[0], dtype=np.float32)) and np.all(cloud <= np.array(box[1], dtype=np.float32))
+    assert 0 < info["num_points_in_crop"] < 2048
+    assert len(np.unique(cloud, axis=0)) == info["num_points_in_crop"]  # repeats, never invented points
+
+
+def test_rgb_points():
+    env = make("hammer", with_rgb=True, **SMALL)
+    observation, _ = env.reset(seed=0)
+    cloud = observation["point_cloud"]
+    assert cloud.shape == (128, 6)
+    assert env.observation_space.contains(observation)
+    assert np.all((cloud[:, 3:] >= 0) & (cloud[:, 3:] <= 1)) and cloud[:, 3:].std() > 0
+
+
+@pytest.mark.parametrize("task", ["hammer", "adroit-door"])
+def test_dict_space_contains_every_observation(task):
+    env = make(task, **SMALL)
+    observation, info = env.reset(seed=0)
+    assert set(observation) == {"point_cloud", "agent_pos", "state"}
+    assert env.observation_space.contains(observation)
+    assert info["success"] is False
+    for _ in range(3):
+        observation, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert env.observation_space.contains(observation)
+        assert isinstance(info["success"], bool)
+
+
+def test_state_can_be_left_out():
+    env = make("hammer", state_obs=False, **SMALL)
+    observation, _ = env.reset(seed=0)
+    assert set(observation) == {"point_cloud", "agent_pos"}
+
+
+def test_default_episode_is_200_steps_and_configurable():
+    env = make("reach", max_episode_steps=3, **SMALL)
+    env.reset(seed=0)
+    truncations = [env.step(env.action_space.sample())[3] for _ in range(3)]
+    assert truncations == [False, False, True]
+    assert gym.spec("D2A-MetaWorld-Reach-v0").max_episode_steps == 200
+
+
+def test_episodes_longer_than_metaworlds_own_limit():
+    env = make("reach", max_episode_steps=510, image_size=16, num_points=8)
+    env.reset(seed=0)
+    for _ in range(505):  # Meta-World itself raises after 500 steps
+        env.step(env.action_space.sample())
+
+
+@pytest.mark.parametrize("task", ["hammer", "adroit-pen"])
+def test_gymnasium_env_checker(task):
+    spec = d2a_envs.get_task(task)
+    check_env(d2a_envs.make_env(spec.suite, spec.task, **SMALL), skip_render_check=True)
+
+
+@pytest.mark.parametrize("vector_class", [gym.vector.SyncVectorEnv, gym.vector.AsyncVectorEnv])
+def test_vector_envs(vector_class):
+    envs = vector_class([lambda: make("hammer", **SMALL) for _ in range(2)])
+    observations, infos = envs.reset(seed=[0, 1])
+    assert observations["point_cloud"].shape == (2, 128, 3)
+    observations, rewards, terminated, truncated, infos = envs.step(envs.action_space.sample())
+    assert observations["point_cloud"].shape == (2, 128, 3)
+    assert infos["success"].shape == (2,)
+    envs.close()
+
+
+def test_wrapper_records_its_constructor_args():
+    env = make("hammer", **SMALL)
+    recorded = env.spec.additional_wrappers if env.spec else ()
+    pointcloud = env.get_wrapper_attr("config")
+    assert pointcloud.num_points == 128
+    assert env.env.env.env._saved_kwargs["config"] == pointcloud or any(
+        w.name == "PointCloudObservation" for w in recorded
+    )
+
+
+@pytest.mark.parametrize("spec", d2a_envs.TASKS, ids=lambda spec: spec.env_id)
+def test_every_registered_id_resets_and_steps(spec):
+    env = gym.make(spec.env_id, image_size=32, num_points=64)
+    observation, _ = env.reset(seed=0)
+    assert observation["point_cloud"].shape == (64, 3)
+    observation, *_ = env.step(env.action_space.sample())
+    assert np.isfinite(observation["point_cloud"]).all()
+    env.close()
+
+
+def test_task_table():
+    assert len(d2a_envs.list_tasks(suite="metaworld")) == 50
+    assert len(d2a_envs.list_tasks(suite="adroit")) == 3
+    counts = {level: len(d2a_envs.list_tasks(difficulty=level)) for level in ("easy", "medium", "hard", "very_hard")}
+    assert counts == {"easy": 28, "medium": 11, "hard": 6, "very_hard": 5}
+    assert d2a_envs.get_task("pick-place-wall").env_id == "D2A-MetaWorld-PickPlaceWall-v0"
+
+
+# --- bad input gets a clear error -------------------------------------------------------
+
+
+def test_unknown_task_suggests_close_ids():
+    with pytest.raises(ValueError, match="did you mean hammer"):
+        d2a_envs.get_task("hamer")
+    with pytest.raises(gym.error.NameNotFound):
+        gym.make("D2A-MetaWorld-Hamer-v0")
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(cameras=("nope",)), "unknown camera 'nope'; this model has cameras"),
+        (dict(num_points=0), "num_points must be positive"),
+        (dict(crop_box=((0, 0, 1), (1, 1, 0))), "inverted"),
+        (dict(backend="vulkan"), "unknown depth backend"),
+        (dict(crop_box=((5, 5, 5), (6, 6, 6))), "no point seen by cameras"),
+    ],
+)
+def test_bad_configuration_is_refused(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        env = make("hammer", **kwargs)
+        env.reset(seed=0)
+
+
+def test_nan_action_is_refused():
+    env = make("hammer", **SMALL)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(np.array([np.nan, 0, 0, 0], dtype=np.float32))
+
+
+def test_render_backend_without_gl_says_what_to_install(monkeypatch):
+    monkeypatch.setattr("d2a_envs.depth.bound_gl_platform", lambda: None)
+    with pytest.raises(RuntimeError, match="apt-get install libegl1"):
+        make("hammer", backend="render")
+
+
+# --- the two depth backends agree -------------------------------------------------------
+
+
+@requires_render
+@pytest.mark.parametrize("task", ["hammer", "assembly", "shelf-place"])
+@pytest.mark.parametrize("camera", ["corner4", "corner2", "topview"])
+def test_backends_agree_within_2mm(task, camera):
+    env = make(task, **SMALL)
+    env.reset(seed=0)
+    for _ in range(5):
+        env.step(env.action_space.sample())
+    model, data = env.unwrapped.model, env.unwrapped.data
+    cam = camera_id(model, camera)
+    ray = RaycastDepth(128, 128).capture(model, data, cam, with_rgb=False).depth
+    render = RenderDepth(128, 128).capture(model, data, cam, with_rgb=False).depth
+    both = np.isfinite(ray) & np.isfinite(render)
+    assert both.sum() > 1000
+    agree = np.abs(ray[both] - render[both]) < 0.002
+    assert agree.mean() >= 0.99
+    seen_by_one = np.isfinite(ray) ^ np.isfinite(render)
+    assert seen_by_one.mean() < 0.01
