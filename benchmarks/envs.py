@@ -14,6 +14,8 @@ import gymnasium as gym
 import numpy as np
 
 import d2a_envs
+from d2a_envs.camera import camera_id
+from d2a_envs.depth import RaycastDepth, RenderDepth
 from d2a_envs.suites.metaworld import MetaWorldEnv
 
 
@@ -27,6 +29,8 @@ class EnvBenchConfig:
     backends: tuple[str, ...] = ("raycast", "render")
     image_sizes: tuple[int, ...] = (84, 128)
     point_counts: tuple[int, ...] = (512, 1024)
+    agreement_tasks: tuple[str, ...] = ("hammer", "assembly", "push", "basketball")
+    agreement_cameras: tuple[str, ...] = ("corner4", "corner2", "topview")
 
 
 def steps_per_second(env: gym.Env, steps: int, seed: int) -> float:
@@ -40,6 +44,28 @@ def steps_per_second(env: gym.Env, steps: int, seed: int) -> float:
         if terminated or truncated:
             env.reset()
     return steps / (time.perf_counter() - start)
+
+
+def backend_agreement(config: EnvBenchConfig) -> None:
+    """Print, per task and camera, the share of pixels seen by both backends whose depths
+    differ by less than 2 mm (128 px, after 10 random steps)."""
+    print("\n| task | camera | pixels seen by both | depth within 2 mm | seen by one only |")
+    print("| --- | --- | --- | --- | --- |")
+    for task, camera in itertools.product(config.agreement_tasks, config.agreement_cameras):
+        env = gym.make(d2a_envs.get_task(task).env_id, image_size=16, num_points=8)
+        env.reset(seed=config.seed)
+        env.action_space.seed(config.seed)
+        for _ in range(10):
+            env.step(env.action_space.sample())
+        model, data = env.unwrapped.model, env.unwrapped.data
+        cam = camera_id(model, camera)
+        ray = RaycastDepth(128, 128).capture(model, data, cam, with_rgb=False).depth
+        render = RenderDepth(128, 128).capture(model, data, cam, with_rgb=False).depth
+        both = np.isfinite(ray) & np.isfinite(render)
+        within = np.mean(np.abs(ray[both] - render[both]) < 0.002)
+        one = np.mean(np.isfinite(ray) ^ np.isfinite(render))
+        print(f"| {task} | {camera} | {both.sum()} | {100 * within:.2f} % | {100 * one:.2f} % |")
+        env.close()
 
 
 def run(config: EnvBenchConfig = EnvBenchConfig()) -> list[dict[str, object]]:
@@ -64,7 +90,8 @@ def run(config: EnvBenchConfig = EnvBenchConfig()) -> list[dict[str, object]]:
     by_key = {(r["env"], r["size"], r["points"]): r["sps"] for r in rows}
     fast, slow = by_key.get(("D2A raycast", 128, 1024)), by_key.get(("D2A render", 128, 1024))
     if fast and slow:
-        print(f"\nraycast / render at 128 px, N = 1024: {fast / slow:.1f}x")
+        print(f"\nraycast / render at 128 px, N = 1024: {fast / slow:.2f}x")
+        backend_agreement(config)
     return rows
 
 
