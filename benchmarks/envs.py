@@ -7,6 +7,7 @@ process, one after the other, so that the ratios are measured side by side.
 from __future__ import annotations
 
 import itertools
+from functools import partial
 import time
 from dataclasses import dataclass
 
@@ -29,6 +30,7 @@ class EnvBenchConfig:
     backends: tuple[str, ...] = ("raycast", "render")
     image_sizes: tuple[int, ...] = (84, 128)
     point_counts: tuple[int, ...] = (512, 1024)
+    vector_processes: int = 2
     agreement_tasks: tuple[str, ...] = ("hammer", "assembly", "push", "basketball")
     agreement_cameras: tuple[str, ...] = ("corner4", "corner2", "topview")
 
@@ -44,6 +46,27 @@ def steps_per_second(env: gym.Env, steps: int, seed: int) -> float:
         if terminated or truncated:
             env.reset()
     return steps / (time.perf_counter() - start)
+
+
+def vector_steps_per_second(env_id: str, backend: str, processes: int, steps: int, seed: int) -> float:
+    """Env steps per second of an ``AsyncVectorEnv`` with one env per process (128 px, N = 1024).
+
+    Workers are spawned, not forked (this process has already rendered, and GL does not
+    survive a fork); the ``d2a_envs:`` prefix makes each fresh worker register the ids.
+    """
+    envs = gym.vector.AsyncVectorEnv(
+        [partial(gym.make, f"d2a_envs:{env_id}", backend=backend) for _ in range(processes)], context="spawn"
+    )
+    envs.reset(seed=[seed + i for i in range(processes)])
+    envs.action_space.seed(seed)
+    actions = [envs.action_space.sample() for _ in range(steps)]
+    envs.step(actions[0])  # let every worker create its renderer before timing
+    start = time.perf_counter()
+    for action in actions:
+        envs.step(action)
+    rate = processes * steps / (time.perf_counter() - start)
+    envs.close()
+    return rate
 
 
 def backend_agreement(config: EnvBenchConfig) -> None:
@@ -91,6 +114,10 @@ def run(config: EnvBenchConfig = EnvBenchConfig()) -> list[dict[str, object]]:
     fast, slow = by_key.get(("D2A raycast", 128, 1024)), by_key.get(("D2A render", 128, 1024))
     if fast and slow:
         print(f"\nraycast / render at 128 px, N = 1024: {fast / slow:.2f}x")
+        print(f"\nAsyncVectorEnv, {config.vector_processes} processes, 128 px, N = 1024 (env steps/s):")
+        for backend in config.backends:
+            rate = vector_steps_per_second(spec.env_id, backend, config.vector_processes, config.steps // 2, config.seed)
+            print(f"  {backend}: {rate:.1f}")
         backend_agreement(config)
     return rows
 

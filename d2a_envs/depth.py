@@ -10,6 +10,7 @@ the pixel sees nothing.
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -70,21 +71,69 @@ MULTIRAY_MAX_ELEVATION_DEG = 60.0
 MULTIRAY_IS_EXACT = tuple(int(x) for x in mujoco.__version__.split(".")[:2]) >= (3, 5)
 
 
+def default_ray_threads() -> int:
+    """Threads for ray casting: MuJoCo releases the GIL, so casting scales with cores."""
+    return max(1, min(4, len(os.sched_getaffinity(0))))
+
+
 class RaycastDepth:
-    """Depth by ray casting from the camera through every pixel centre (no GL needed)."""
+    """Depth by ray casting from the camera through every pixel centre (no GL needed).
+
+    Rays are cast in ``threads`` chunks in parallel; each ray is independent, so the image
+    does not depend on the number of threads.
+    """
 
     name = "raycast"
 
-    def __init__(self, width: int, height: int) -> None:
+    def __init__(self, width: int, height: int, threads: int | None = None) -> None:
         self.width, self.height = width, height
+        self.threads = threads or default_ray_threads()
         self._directions: dict[int, np.ndarray] = {}
         self._geom_groups = visible_geom_groups()
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_pid: int | None = None
 
     def _camera_directions(self, model: mujoco.MjModel, cam_id: int) -> np.ndarray:
         if cam_id not in self._directions:
             intrinsics = camera_intrinsics(model, cam_id, self.width, self.height)
             self._directions[cam_id] = intrinsics.ray_directions()
         return self._directions[cam_id]
+
+    def _executor(self) -> ThreadPoolExecutor:
+        # Threads do not survive fork: a forked copy makes its own pool.
+        if self._pool is None or self._pool_pid != os.getpid():
+            self._pool, self._pool_pid = ThreadPoolExecutor(self.threads), os.getpid()
+        return self._pool
+
+    def _cast(self, model: mujoco.MjModel, data: mujoco.MjData, origin: np.ndarray, vec: np.ndarray):
+        """(geom id, distance) of every ray; id -1 where nothing is hit."""
+        geom_ids = np.full(len(vec), -1, dtype=np.int32)
+        dist = np.empty(len(vec), dtype=np.float64)
+        if len(vec) == 0:
+            return geom_ids, dist
+        exact_multiray = MULTIRAY_IS_EXACT or not _has_steep_ray(vec)
+
+        def cast_chunk(chunk: slice) -> None:
+            ids, lengths, rays = geom_ids[chunk], dist[chunk], np.ascontiguousarray(vec[chunk])
+            if exact_multiray:
+                mujoco.mj_multiRay(
+                    model, data, origin, rays.reshape(-1), self._geom_groups, 1, -1, ids, lengths, len(rays),
+                    far_clip(model),
+                )
+                return
+            hit_id = np.empty(1, dtype=np.int32)
+            for i, ray in enumerate(rays):
+                lengths[i] = mujoco.mj_ray(model, data, origin, ray, self._geom_groups, 1, -1, hit_id)
+                ids[i] = hit_id[0]
+
+        bounds = np.linspace(0, len(vec), self.threads + 1).astype(int)
+        chunks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+        if len(chunks) <= 1:
+            for chunk in chunks:
+                cast_chunk(chunk)
+        else:
+            list(self._executor().map(cast_chunk, chunks))
+        return geom_ids, dist
 
     def capture(
         self, model: mujoco.MjModel, data: mujoco.MjData, cam_id: int, with_rgb: bool,
@@ -94,22 +143,7 @@ class RaycastDepth:
         # Directions keep z = -1 in the camera frame, so the ray parameter is the depth.
         all_vec = self._camera_directions(model, cam_id) @ pose.rotation.T
         cast = np.ones(len(all_vec), dtype=bool) if region is None else rays_meet_box(pose.position, all_vec, region)
-        vec = np.ascontiguousarray(all_vec[cast])
-        n_rays = vec.shape[0]
-        geom_ids = np.full(n_rays, -1, dtype=np.int32)
-        dist = np.empty(n_rays, dtype=np.float64)
-        if n_rays == 0:
-            pass
-        elif MULTIRAY_IS_EXACT or not _has_steep_ray(vec):
-            mujoco.mj_multiRay(
-                model, data, pose.position, vec.reshape(-1), self._geom_groups, 1, -1,
-                geom_ids, dist, n_rays, far_clip(model),
-            )
-        else:
-            hit_id = np.empty(1, dtype=np.int32)
-            for i in range(n_rays):
-                dist[i] = mujoco.mj_ray(model, data, pose.position, vec[i], self._geom_groups, 1, -1, hit_id)
-                geom_ids[i] = hit_id[0]
+        geom_ids, dist = self._cast(model, data, pose.position, all_vec[cast])
         hit = geom_ids >= 0
         depth = np.full(len(all_vec), np.inf)
         depth[np.flatnonzero(cast)[hit]] = dist[hit]
@@ -122,6 +156,14 @@ class RaycastDepth:
 
     def close(self) -> None:
         self._directions.clear()
+        if self._pool is not None and self._pool_pid == os.getpid():
+            self._pool.shutdown()
+        self._pool = None
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_pool"], state["_pool_pid"] = None, None
+        return state
 
 
 def rays_meet_box(origin: np.ndarray, directions: np.ndarray, box: CropBox) -> np.ndarray:
@@ -148,6 +190,22 @@ def geom_colours(model: mujoco.MjModel) -> np.ndarray:
     return colours
 
 
+# Process that created the first GL context. A GL driver's threads and locks do not survive
+# fork: a forked child that renders after its parent did can hang (seen with Mesa's EGL).
+_gl_owner_pid: int | None = None
+
+
+def _claim_gl_for_this_process() -> None:
+    global _gl_owner_pid
+    if _gl_owner_pid is not None and _gl_owner_pid != os.getpid():
+        raise RuntimeError(
+            "the 'render' backend cannot create a GL context in a process forked after its parent "
+            "(pid {}) already rendered: start workers with the 'spawn' method, e.g. "
+            "gymnasium.vector.AsyncVectorEnv(env_fns, context='spawn'), or use backend='raycast'".format(_gl_owner_pid)
+        )
+    _gl_owner_pid = os.getpid()
+
+
 class RenderDepth:
     """Depth from MuJoCo's OpenGL renderer, created lazily so forked workers stay safe."""
 
@@ -169,6 +227,7 @@ class RenderDepth:
             global_vis = model.vis.global_
             global_vis.offwidth = max(global_vis.offwidth, self.width)
             global_vis.offheight = max(global_vis.offheight, self.height)
+            _claim_gl_for_this_process()
             try:
                 self._renderer = mujoco.Renderer(model, height=self.height, width=self.width)
             except Exception as error:  # GL context creation fails in many library-specific ways

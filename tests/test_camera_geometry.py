@@ -104,3 +104,16 @@ def test_focal_length_matches_fovy_convention(known_scene):
     model, _ = known_scene
     intrinsics = camera_intrinsics(model, camera_id(model, "front"), 100, 80)
     assert intrinsics.focal == pytest.approx(80 / (2 * math.tan(math.radians(50) / 2)))
+
+
+@pytest.mark.parametrize("camera", ["corner4", "topview"])
+def test_raycast_image_does_not_depend_on_thread_count(camera):
+    import gymnasium as gym
+
+    env = gym.make("D2A-MetaWorld-Assembly-v0", image_size=16, num_points=8)
+    env.reset(seed=0)
+    model, data = env.unwrapped.model, env.unwrapped.data
+    cam = camera_id(model, camera)
+    images = [RaycastDepth(64, 48, threads=n).capture(model, data, cam, with_rgb=True) for n in (1, 3)]
+    np.testing.assert_array_equal(images[0].depth, images[1].depth)
+    np.testing.assert_array_equal(images[0].rgb, images[1].rgb)

@@ -232,3 +232,27 @@ def test_backends_agree_within_2mm(task, camera):
     assert agree.mean() >= 0.99
     seen_by_one = np.isfinite(ray) ^ np.isfinite(render)
     assert seen_by_one.mean() < 0.01
+
+
+def _render_in_child(queue) -> None:
+    env = make("hammer", backend="render", **SMALL)
+    try:
+        env.reset(seed=0)
+        queue.put("rendered")
+    except RuntimeError as error:
+        queue.put(str(error))
+
+
+@requires_render
+def test_render_after_fork_of_a_rendering_parent_is_refused_not_hung():
+    import multiprocessing
+
+    parent_env = make("hammer", backend="render", **SMALL)
+    parent_env.reset(seed=0)  # the parent now owns a GL context
+    context = multiprocessing.get_context("fork")
+    queue = context.Queue()
+    child = context.Process(target=_render_in_child, args=(queue,))
+    child.start()
+    message = queue.get(timeout=60)
+    child.join(timeout=60)
+    assert "context='spawn'" in message

@@ -5,13 +5,10 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
-import gymnasium_robotics
 import mujoco
 import numpy as np
 
 from d2a_envs.suites.base import SuiteEnv
-
-gym.register_envs(gymnasium_robotics)
 
 ADROIT_ENV_IDS = {"hammer": "AdroitHandHammer-v1", "door": "AdroitHandDoor-v1", "pen": "AdroitHandPen-v1"}
 
@@ -26,6 +23,9 @@ class AdroitEnv(SuiteEnv):
     def __init__(self, task: str, state_obs: bool = True) -> None:
         if task not in ADROIT_ENV_IDS:
             raise ValueError(f"unknown Adroit task {task!r}; choose one of {sorted(ADROIT_ENV_IDS)}")
+        import gymnasium_robotics  # imported on use: it prints a notice about its dense rewards
+
+        gym.register_envs(gymnasium_robotics)
         self.task = task
         # The raw env: episode length is set by the D2A registration, not gymnasium-robotics.
         self._sim = gym.make(ADROIT_ENV_IDS[task], max_episode_steps=None).unwrapped
