@@ -7,9 +7,9 @@ process, one after the other, so that the ratios are measured side by side.
 from __future__ import annotations
 
 import itertools
-from functools import partial
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import gymnasium as gym
 import numpy as np
@@ -103,7 +103,8 @@ def run(config: EnvBenchConfig = EnvBenchConfig()) -> list[dict[str, object]]:
         except RuntimeError as error:  # no GL library for the render backend
             print(f"skipping {backend}: {error}")
             break
-        rows.append(dict(env=f"D2A {backend}", size=size, points=points, sps=steps_per_second(env, config.steps, config.seed)))
+        rate = steps_per_second(env, config.steps, config.seed)
+        rows.append(dict(env=f"D2A {backend}", size=size, points=points, sps=rate))
         env.close()
     print(f"\n{spec.env_id}, {config.steps} steps per row, one process\n")
     print("| env | image | N | steps/s | x state-only |")
@@ -116,7 +117,9 @@ def run(config: EnvBenchConfig = EnvBenchConfig()) -> list[dict[str, object]]:
         print(f"\nraycast / render at 128 px, N = 1024: {fast / slow:.2f}x")
         print(f"\nAsyncVectorEnv, {config.vector_processes} processes, 128 px, N = 1024 (env steps/s):")
         for backend in config.backends:
-            rate = vector_steps_per_second(spec.env_id, backend, config.vector_processes, config.steps // 2, config.seed)
+            rate = vector_steps_per_second(
+                spec.env_id, backend, config.vector_processes, config.steps // 2, config.seed
+            )
             print(f"  {backend}: {rate:.1f}")
         backend_agreement(config)
     return rows

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 
 def _parse_box(text: str | None) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
@@ -77,7 +77,8 @@ def cmd_demo(args: argparse.Namespace) -> None:
     env.close()
     cloud = observation["point_cloud"]
     print(f"observation keys: {sorted(observation)}; point_cloud {cloud.shape} {cloud.dtype}")
-    print(f"points in the crop box per step: min {min(counts)}, median {sorted(counts)[len(counts) // 2]}, max {max(counts)}")
+    median = sorted(counts)[len(counts) // 2]
+    print(f"points in the crop box per step: min {min(counts)}, median {median}, max {max(counts)}")
     out = Path(args.out_dir) / f"{spec.name}_pointcloud.png"
     print(f"wrote {plot_task_point_cloud(spec.name, out, seed=args.seed, steps=args.steps, **_env_kwargs(args))}")
 

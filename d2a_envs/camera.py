@@ -10,6 +10,7 @@ instead shifts every point by half a pixel (about 1 cm at 1 m with 128 px).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -35,12 +36,20 @@ class PinholeIntrinsics:
         """Camera-frame direction of every pixel centre, row-major, shape (H * W, 3).
 
         Each direction has z = -1, so the distance along it is the depth (the z-buffer
-        distance along the optical axis) rather than the Euclidean range.
+        distance along the optical axis) rather than the Euclidean range. The array is
+        cached and read-only.
         """
-        u = (np.arange(self.width) + 0.5 - self.width / 2.0) / self.focal
-        v = (np.arange(self.height) + 0.5 - self.height / 2.0) / self.focal
-        uu, vv = np.meshgrid(u, v)
-        return np.stack([uu, -vv, -np.ones_like(uu)], axis=-1).reshape(-1, 3)
+        return _ray_directions(self.width, self.height, self.focal)
+
+
+@functools.lru_cache(maxsize=64)
+def _ray_directions(width: int, height: int, focal: float) -> np.ndarray:
+    u = (np.arange(width) + 0.5 - width / 2.0) / focal
+    v = (np.arange(height) + 0.5 - height / 2.0) / focal
+    uu, vv = np.meshgrid(u, v)
+    directions = np.stack([uu, -vv, -np.ones_like(uu)], axis=-1).reshape(-1, 3)
+    directions.flags.writeable = False
+    return directions
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ the pixel sees nothing.
 
 from __future__ import annotations
 
+import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -88,16 +89,9 @@ class RaycastDepth:
     def __init__(self, width: int, height: int, threads: int | None = None) -> None:
         self.width, self.height = width, height
         self.threads = threads or default_ray_threads()
-        self._directions: dict[int, np.ndarray] = {}
         self._geom_groups = visible_geom_groups()
         self._pool: ThreadPoolExecutor | None = None
         self._pool_pid: int | None = None
-
-    def _camera_directions(self, model: mujoco.MjModel, cam_id: int) -> np.ndarray:
-        if cam_id not in self._directions:
-            intrinsics = camera_intrinsics(model, cam_id, self.width, self.height)
-            self._directions[cam_id] = intrinsics.ray_directions()
-        return self._directions[cam_id]
 
     def _executor(self) -> ThreadPoolExecutor:
         # Threads do not survive fork: a forked copy makes its own pool.
@@ -127,7 +121,7 @@ class RaycastDepth:
                 ids[i] = hit_id[0]
 
         bounds = np.linspace(0, len(vec), self.threads + 1).astype(int)
-        chunks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+        chunks = [slice(a, b) for a, b in itertools.pairwise(bounds) if b > a]
         if len(chunks) <= 1:
             for chunk in chunks:
                 cast_chunk(chunk)
@@ -141,7 +135,7 @@ class RaycastDepth:
     ) -> CameraImage:
         pose = camera_pose(data, cam_id)
         # Directions keep z = -1 in the camera frame, so the ray parameter is the depth.
-        all_vec = self._camera_directions(model, cam_id) @ pose.rotation.T
+        all_vec = camera_intrinsics(model, cam_id, self.width, self.height).ray_directions() @ pose.rotation.T
         cast = np.ones(len(all_vec), dtype=bool) if region is None else rays_meet_box(pose.position, all_vec, region)
         geom_ids, dist = self._cast(model, data, pose.position, all_vec[cast])
         hit = geom_ids >= 0
@@ -155,7 +149,6 @@ class RaycastDepth:
         return CameraImage(depth=depth.reshape(self.height, self.width), rgb=rgb)
 
     def close(self) -> None:
-        self._directions.clear()
         if self._pool is not None and self._pool_pid == os.getpid():
             self._pool.shutdown()
         self._pool = None
@@ -200,8 +193,8 @@ def _claim_gl_for_this_process() -> None:
     if _gl_owner_pid is not None and _gl_owner_pid != os.getpid():
         raise RuntimeError(
             "the 'render' backend cannot create a GL context in a process forked after its parent "
-            "(pid {}) already rendered: start workers with the 'spawn' method, e.g. "
-            "gymnasium.vector.AsyncVectorEnv(env_fns, context='spawn'), or use backend='raycast'".format(_gl_owner_pid)
+            f"(pid {_gl_owner_pid}) already rendered: start workers with the 'spawn' method, e.g. "
+            "gymnasium.vector.AsyncVectorEnv(env_fns, context='spawn'), or use backend='raycast'"
         )
     _gl_owner_pid = os.getpid()
 

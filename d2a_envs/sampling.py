@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import fpsample
 import numpy as np
@@ -26,7 +26,7 @@ class CropBox:
         if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
             raise ValueError(f"crop box corners must be finite, got low={self.low}, high={self.high}")
         if np.any(high <= low):
-            axes = [axis for axis, (lo, hi) in zip("xyz", zip(low, high)) if hi <= lo]
+            axes = [axis for axis, lo, hi in zip("xyz", low, high, strict=True) if hi <= lo]
             raise ValueError(f"crop box is empty or inverted along {axes}: low={self.low}, high={self.high}")
         object.__setattr__(self, "low", tuple(float(v) for v in low))
         object.__setattr__(self, "high", tuple(float(v) for v in high))

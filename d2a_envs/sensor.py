@@ -7,7 +7,6 @@ pair, so the Gymnasium wrapper and the TorchRL transform share one implementatio
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Sequence
 
 import mujoco
 import numpy as np

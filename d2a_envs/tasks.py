@@ -60,7 +60,9 @@ def _metaworld_specs() -> list[TaskSpec]:
 
 def _adroit_specs() -> list[TaskSpec]:
     return [
-        TaskSpec(env_id=f"D2A-Adroit-{_camel(task)}-v0", suite="adroit", task=task, name=f"adroit-{task}", difficulty=None)
+        TaskSpec(
+            env_id=f"D2A-Adroit-{_camel(task)}-v0", suite="adroit", task=task, name=f"adroit-{task}", difficulty=None
+        )
         for task in ADROIT_ENV_IDS
     ]
 

@@ -1,10 +1,14 @@
 """Shared fixtures: importing d2a_envs first picks a headless GL platform for MuJoCo."""
+# ruff: noqa: I001  (d2a_envs must be imported before mujoco: it sets MUJOCO_GL)
 
 from __future__ import annotations
 
-import d2a_envs  # noqa: F401,I001  (first: sets MUJOCO_GL before mujoco is imported, registers ids)
+import os
+
+import d2a_envs  # noqa: F401  (also registers the D2A ids)
 import mujoco
 import pytest
+
 from d2a_envs.depth import RenderDepth
 
 # A scene with known geometry: a sphere and a box, seen by one camera, nothing else.
@@ -46,4 +50,8 @@ def _render_available() -> bool:
 
 
 RENDER_AVAILABLE = _render_available()
-requires_render = pytest.mark.skipif(not RENDER_AVAILABLE, reason="no headless OpenGL (apt-get install libegl1 libgl1-mesa-dri libosmesa6)")
+if os.environ.get("D2A_REQUIRE_RENDER") == "1" and not RENDER_AVAILABLE:
+    raise RuntimeError("D2A_REQUIRE_RENDER=1 but the render backend cannot create a GL context here")
+requires_render = pytest.mark.skipif(
+    not RENDER_AVAILABLE, reason="no headless OpenGL (apt-get install libegl1 libgl1-mesa-dri libosmesa6)"
+)

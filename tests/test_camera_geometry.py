@@ -31,7 +31,8 @@ def test_backproject_by_hand():
     depth = np.array([[2.0, np.inf], [np.inf, np.inf]])
     points = backproject(depth, intrinsics, pose)
     # Pixel (0, 0): camera-frame direction (-0.5, 0.5, -1) * 2 = (-1, 1, -2).
-    np.testing.assert_allclose(points, [[1.0 - 1.0, 2.0 + 2.0, 3.0 + 1.0]], atol=1e-12)  # 2 m along +y, 1 m left, 1 m up
+    # 2 m along +y, 1 m left, 1 m up:
+    np.testing.assert_allclose(points, [[1.0 - 1.0, 2.0 + 2.0, 3.0 + 1.0]], atol=1e-12)
 
 
 def _surface_error(points: np.ndarray) -> np.ndarray:
@@ -46,7 +47,8 @@ def _surface_error(points: np.ndarray) -> np.ndarray:
 def _scene_points(backend, model, data) -> np.ndarray:
     cam = camera_id(model, "front")
     image = backend.capture(model, data, cam, with_rgb=False)
-    return backproject(image.depth, camera_intrinsics(model, cam, backend.width, backend.height), camera_pose(data, cam))
+    intrinsics = camera_intrinsics(model, cam, backend.width, backend.height)
+    return backproject(image.depth, intrinsics, camera_pose(data, cam))
 
 
 def test_raycast_points_lie_on_known_surfaces(known_scene):

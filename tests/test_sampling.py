@@ -69,7 +69,11 @@ def test_sampling_from_nothing_is_an_error():
 
 @pytest.mark.parametrize(
     "low, high, message",
-    [((0, 0, 0), (1, 1, 0), r"inverted along \['z'\]"), ((0, 1, 0), (1, 0, 1), "inverted"), ((0, 0), (1, 1), "3 numbers")],
+    [
+        ((0, 0, 0), (1, 1, 0), r"inverted along \['z'\]"),
+        ((0, 1, 0), (1, 0, 1), "inverted"),
+        ((0, 0), (1, 1), "3 numbers"),
+    ],
 )
 def test_bad_crop_boxes_are_refused(low, high, message):
     with pytest.raises(ValueError, match=message):
