@@ -1,0 +1,44 @@
+"""Meta-World's scripted experts as a TorchRL policy that reads the simulator state."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from metaworld.policies import ENV_POLICY_MAP
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+import d2a_envs
+from collectors.envs import STATE_KEY
+
+
+class ScriptedExpert(TensorDictModuleBase):
+    """The hand-written ``metaworld.policies`` expert of one task, as a TorchRL policy.
+
+    Reads the 39-d state (``observation`` under TorchRL) and writes ``action`` (4,), clipped
+    to the action space [-1, 1]. Works on unbatched and batched tensordicts.
+
+    Example:
+        >>> env = make_torchrl_env("hammer")
+        >>> rollout = env.rollout(200, ScriptedExpert("hammer"))
+        >>> bool(rollout["next", "success"].any())
+        True
+    """
+
+    def __init__(self, task: str, state_key: str = STATE_KEY) -> None:
+        super().__init__()
+        spec = d2a_envs.get_task(task)
+        if spec.suite != "metaworld":
+            raise ValueError(f"scripted experts exist for Meta-World tasks only, not {spec.env_id}")
+        self.task = spec.task
+        self.expert = ENV_POLICY_MAP[spec.task]()
+        self.in_keys = [state_key]
+        self.out_keys = ["action"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        states = tensordict.get(self.in_keys[0])
+        flat = states.reshape(-1, states.shape[-1]).detach().cpu().numpy().astype(np.float64)
+        actions = np.stack([np.clip(self.expert.get_action(state), -1.0, 1.0) for state in flat])
+        action = torch.as_tensor(actions, dtype=torch.float32).reshape(*states.shape[:-1], actions.shape[-1])
+        tensordict.set(self.out_keys[0], action.to(states.device))
+        return tensordict

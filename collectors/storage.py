@@ -1,0 +1,267 @@
+"""Demonstration data sets on disk: a TorchRL replay buffer plus a metadata file.
+
+Layout of a data set directory::
+
+    DIR/d2a_dataset.json     metadata: format, tasks and env kwargs, episodes, seeds, versions
+    DIR/buffer/              TensorDictReplayBuffer over LazyMemmapStorage (``rb.dumps``)
+
+One row of the buffer is one control step: the observation before the step
+(``point_cloud``, ``agent_pos``, ``state``), the ``action`` taken, the step's ``reward`` and
+``success``, and where it sits (``episode``, ``step``). Episodes are stored contiguously.
+The metadata file is the source of truth: it is replaced atomically after each complete
+episode, so a collection killed midway leaves every finished episode readable, and rows
+written after the last metadata update are ignored (and overwritten by ``--append``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import asdict, dataclass, field
+from importlib import metadata as package_metadata
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
+
+FORMAT = "d2a-demonstrations"
+FORMAT_VERSION = 1
+METADATA_FILE = "d2a_dataset.json"
+BUFFER_DIR = "buffer"
+FRAME_KEYS = ("point_cloud", "agent_pos", "state", "action", "reward", "success", "episode", "step")
+VERSIONED_PACKAGES = ("d2a", "metaworld", "mujoco", "gymnasium", "gymnasium-robotics", "torch", "torchrl", "tensordict")
+
+
+class DatasetError(ValueError):
+    """A directory that is not, or no longer, a readable D2A data set."""
+
+
+@dataclass
+class EpisodeRecord:
+    """Where one stored episode lives and how it went."""
+
+    index: int
+    task: str
+    start: int
+    length: int
+    success: bool
+    episode_return: float
+    collection: int
+    attempt: int
+    min_points_in_crop: int
+
+
+@dataclass
+class CollectionRecord:
+    """One run of ``d2a collect`` into this data set (``--append`` adds another)."""
+
+    task: str
+    seed: int
+    attempts: int = 0
+    kept: int = 0
+
+
+@dataclass
+class DatasetMetadata:
+    """Everything needed to read and to reproduce a data set."""
+
+    tasks: dict[str, dict[str, Any]] = field(default_factory=dict)  # task -> env kwargs
+    episodes: list[EpisodeRecord] = field(default_factory=list)
+    collections: list[CollectionRecord] = field(default_factory=list)
+    capacity: int = 0
+    versions: dict[str, str] = field(default_factory=dict)
+    format: str = FORMAT
+    format_version: int = FORMAT_VERSION
+
+    @property
+    def num_frames(self) -> int:
+        return sum(episode.length for episode in self.episodes)
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=1)
+
+    @classmethod
+    def from_json(cls, text: str) -> DatasetMetadata:
+        raw = json.loads(text)
+        raw["episodes"] = [EpisodeRecord(**e) for e in raw.get("episodes", [])]
+        raw["collections"] = [CollectionRecord(**c) for c in raw.get("collections", [])]
+        return cls(**raw)
+
+
+def package_versions() -> dict[str, str]:
+    """Installed versions of the packages that shape the data."""
+    versions = {}
+    for name in VERSIONED_PACKAGES:
+        try:
+            versions[name] = package_metadata.version(name)
+        except package_metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    temporary = path.with_suffix(path.suffix + ".tmp")
+    with open(temporary, "w") as handle:
+        handle.write(text)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(temporary, path)
+
+
+def _new_buffer(directory: Path, capacity: int) -> TensorDictReplayBuffer:
+    storage = LazyMemmapStorage(capacity, scratch_dir=directory / BUFFER_DIR / "storage", existsok=True)
+    return TensorDictReplayBuffer(storage=storage, batch_size=1)
+
+
+class DemoDataset:
+    """A data set directory opened for reading or appending.
+
+    Example:
+        >>> dataset = DemoDataset.open("data/hammer")
+        >>> len(dataset.metadata.episodes), dataset.num_frames
+        (10, 2000)
+        >>> frames = dataset.frames()       # TensorDict of every stored step, in order
+    """
+
+    def __init__(self, directory: Path, metadata: DatasetMetadata, buffer: TensorDictReplayBuffer) -> None:
+        self.directory = directory
+        self.metadata = metadata
+        self.buffer = buffer
+
+    # --- opening --------------------------------------------------------------------------
+
+    @staticmethod
+    def is_dataset(directory: str | Path) -> bool:
+        return (Path(directory) / METADATA_FILE).is_file()
+
+    @classmethod
+    def create(cls, directory: str | Path, capacity: int, overwrite: bool = False) -> DemoDataset:
+        """A new, empty data set with room for ``capacity`` steps.
+
+        An existing non-empty directory is refused unless ``overwrite``.
+        """
+        directory = Path(directory)
+        if directory.exists() and any(directory.iterdir()):
+            if not overwrite:
+                raise DatasetError(f"{directory} already holds files; pass --append to add to it or --overwrite")
+            if not cls.is_dataset(directory) and not (directory / BUFFER_DIR).exists():
+                raise DatasetError(f"refusing to overwrite {directory}: it is not a D2A data set")
+            shutil.rmtree(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        dataset = cls(directory, DatasetMetadata(capacity=capacity, versions=package_versions()),
+                      _new_buffer(directory, capacity))
+        dataset._save_metadata()
+        return dataset
+
+    @classmethod
+    def open(cls, directory: str | Path) -> DemoDataset:
+        """Open an existing data set; a missing, foreign or truncated one gets a clear error."""
+        directory = Path(directory)
+        if not directory.is_dir():
+            raise DatasetError(f"no data set at {directory}: the directory does not exist")
+        if not cls.is_dataset(directory):
+            raise DatasetError(f"{directory} is not a D2A data set: {METADATA_FILE} is missing")
+        try:
+            metadata = DatasetMetadata.from_json((directory / METADATA_FILE).read_text())
+        except (json.JSONDecodeError, TypeError, KeyError) as error:
+            raise DatasetError(f"{directory / METADATA_FILE} is unreadable: {error}") from error
+        if metadata.format != FORMAT or metadata.format_version != FORMAT_VERSION:
+            raise DatasetError(
+                f"{directory} has format {metadata.format!r} v{metadata.format_version}; "
+                f"this version of D2A reads {FORMAT!r} v{FORMAT_VERSION}"
+            )
+        buffer = _new_buffer(directory, metadata.capacity)
+        if metadata.episodes:
+            if not (directory / BUFFER_DIR / "storage" / "storage_metadata.json").is_file():
+                raise DatasetError(f"{directory} is truncated: its metadata lists episodes but {BUFFER_DIR}/ is empty")
+            buffer.loads(directory / BUFFER_DIR)
+            if len(buffer) < metadata.num_frames:
+                raise DatasetError(
+                    f"{directory} is truncated: the metadata lists {metadata.num_frames} steps, "
+                    f"the buffer holds {len(buffer)}"
+                )
+        dataset = cls(directory, metadata, buffer)
+        dataset._rewind_to_metadata()
+        return dataset
+
+    # --- writing --------------------------------------------------------------------------
+
+    def _rewind_to_metadata(self) -> None:
+        """Forget rows written after the last metadata update (a killed collection)."""
+        frames = self.metadata.num_frames
+        self.buffer.storage._len = frames
+        self.buffer.writer._cursor = frames
+
+    def _save_metadata(self) -> None:
+        _write_atomically(self.directory / METADATA_FILE, self.metadata.to_json())
+
+    def ensure_capacity(self, extra_frames: int) -> None:
+        """Grow the storage (by copying) if ``extra_frames`` more steps would not fit."""
+        needed = self.metadata.num_frames + extra_frames
+        if needed <= self.metadata.capacity:
+            return
+        frames = self.frames().clone() if self.metadata.num_frames else None
+        shutil.rmtree(self.directory / BUFFER_DIR, ignore_errors=True)
+        self.buffer = _new_buffer(self.directory, needed)
+        if frames is not None:
+            self.buffer.extend(frames)
+            self.buffer.dumps(self.directory / BUFFER_DIR)
+        self.metadata.capacity = needed
+        self._save_metadata()
+
+    def add_episode(self, frames: TensorDictBase, record: EpisodeRecord) -> None:
+        """Store one complete episode (rows = steps, keys = :data:`FRAME_KEYS`), then commit it
+        by rewriting the metadata: the episode exists only once that succeeded."""
+        missing = [key for key in FRAME_KEYS if key not in frames.keys()]
+        if missing:
+            raise ValueError(f"episode frames lack {missing}")
+        self.ensure_capacity(frames.shape[0])
+        record.start, record.length = self.metadata.num_frames, frames.shape[0]
+        self.buffer.extend(frames.select(*FRAME_KEYS))
+        self.buffer.dumps(self.directory / BUFFER_DIR)
+        self.metadata.episodes.append(record)
+        self._save_metadata()
+
+    def commit(self) -> None:
+        """Save the metadata (collection counters) without adding an episode."""
+        self._save_metadata()
+
+    # --- reading --------------------------------------------------------------------------
+
+    @property
+    def num_frames(self) -> int:
+        return self.metadata.num_frames
+
+    def frames(self) -> TensorDict:
+        """Every stored step in order, as a memory-mapped TensorDict (no copy)."""
+        return self.buffer.storage._storage[: self.num_frames]
+
+    def episode(self, index: int) -> TensorDict:
+        """The steps of stored episode ``index``."""
+        record = self.metadata.episodes[index]
+        return self.buffer.storage._storage[record.start : record.start + record.length]
+
+    def size_on_disk(self) -> int:
+        """Bytes the directory really occupies (memory maps are sparse files)."""
+        return sum(os.stat(p).st_blocks * 512 for p in self.directory.rglob("*") if p.is_file())
+
+
+def episode_frames(rollout: TensorDictBase, episode_index: int) -> TensorDict:
+    """Turn one TorchRL trajectory (batch = steps) into the stored row layout."""
+    steps = rollout.shape[0]
+    return TensorDict(
+        {
+            "point_cloud": rollout["point_cloud"],
+            "agent_pos": rollout["agent_pos"],
+            "state": rollout["observation"],
+            "action": rollout["action"],
+            "reward": rollout["next", "reward"].reshape(steps),
+            "success": rollout["next", "success"].reshape(steps),
+            "episode": torch.full((steps,), episode_index, dtype=torch.int64),
+            "step": torch.arange(steps, dtype=torch.int64),
+        },
+        batch_size=[steps],
+    )
