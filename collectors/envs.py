@@ -4,32 +4,41 @@ from __future__ import annotations
 
 from typing import Any
 
+import gymnasium as gym
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
-from torchrl.envs import EnvBase, GymEnv, StepCounter, TransformedEnv
+from torchrl.envs import EnvBase, GymWrapper, StepCounter, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
 
 import d2a_envs
+from d2a_envs.wrappers import SeedEachReset
 
 # Key of the simulator state under TorchRL: GymWrapper renames a Dict entry "state" to "observation".
 STATE_KEY = "observation"
 
 
 class D2AInfoReader(BaseInfoDictReader):
-    """Copy ``success`` (bool) and ``num_points_in_crop`` (int) from ``info`` into the tensordict.
+    """Copy ``success`` (bool), ``num_points_in_crop`` and ``episode_seed`` (int) from ``info``
+    into the tensordict (``episode_seed`` is only in reset infos: steps carry it forward).
 
     TorchRL's default reader expects numpy values; the D2A envs report plain Python ones.
     """
 
     def __init__(self) -> None:
         self._spec = Composite(
-            success=Unbounded((), dtype=torch.bool), num_points_in_crop=Unbounded((), dtype=torch.int64), shape=[]
+            success=Unbounded((), dtype=torch.bool),
+            num_points_in_crop=Unbounded((), dtype=torch.int64),
+            episode_seed=Unbounded((), dtype=torch.int64),
+            shape=[],
         )
+        self._episode_seed = -1
 
     def __call__(self, info_dict: dict[str, Any], tensordict: TensorDictBase) -> TensorDictBase:
+        self._episode_seed = info_dict.get("episode_seed", self._episode_seed)
+        values = {**info_dict, "episode_seed": self._episode_seed}
         for key, spec in self._spec.items():
-            tensordict.set(key, torch.as_tensor(info_dict[key], dtype=spec.dtype))
+            tensordict.set(key, torch.as_tensor(values[key], dtype=spec.dtype))
         return tensordict
 
     @property
@@ -37,9 +46,13 @@ class D2AInfoReader(BaseInfoDictReader):
         return self._spec
 
 
-def make_torchrl_env(task: str, env_kwargs: dict[str, Any] | None = None) -> EnvBase:
-    """``GymEnv`` of a D2A task that also reports ``success`` and ``num_points_in_crop`` and
-    counts steps (``step_count``).
+def make_torchrl_env(task: str, env_kwargs: dict[str, Any] | None = None, seed: int | None = None) -> EnvBase:
+    """TorchRL env of a D2A task that reports ``success``, ``num_points_in_crop`` and
+    ``episode_seed`` and counts steps (``step_count``).
+
+    Every episode gets its own seed (:class:`~d2a_envs.wrappers.SeedEachReset`): with
+    ``seed=s`` the episodes use s, s + 1, ... whatever collector drives the env, and each
+    step carries its episode's seed in ``episode_seed``.
 
     Example:
         >>> env = make_torchrl_env("hammer", {"num_points": 512})
@@ -47,6 +60,6 @@ def make_torchrl_env(task: str, env_kwargs: dict[str, Any] | None = None) -> Env
         torch.Size([3])
     """
     spec = d2a_envs.get_task(task)
-    env = GymEnv(spec.env_id, **(env_kwargs or {}))
+    env = GymWrapper(SeedEachReset(gym.make(spec.env_id, **(env_kwargs or {})), seed=seed))
     env.set_info_dict_reader(D2AInfoReader())
     return TransformedEnv(env, StepCounter())

@@ -265,3 +265,27 @@ def episode_frames(rollout: TensorDictBase, episode_index: int) -> TensorDict:
         },
         batch_size=[steps],
     )
+
+
+def describe(dataset: DemoDataset) -> str:
+    """A human-readable summary: per task episodes, attempts, lengths, success, point counts, size."""
+    meta = dataset.metadata
+    lines = [f"{dataset.directory}: {len(meta.episodes)} episodes, {meta.num_frames} steps, "
+             f"{dataset.size_on_disk() / 2**20:.1f} MiB on disk (format {meta.format} v{meta.format_version})"]
+    if meta.num_frames:
+        frames = dataset.frames()
+        shapes = {key: tuple(frames[key].shape[1:]) for key in ("point_cloud", "agent_pos", "state", "action")}
+        lines.append(", ".join(f"{key} {shape}" for key, shape in shapes.items()))
+    header = ("task", "kept", "tried", "length min/mean/max", "success", "min pts in crop")
+    lines.append(f"{header[0]:<22} {header[1]:>5} {header[2]:>6} {header[3]:>20} {header[4]:>8} {header[5]:>16}")
+    for task, env_kwargs in meta.tasks.items():
+        episodes = [e for e in meta.episodes if e.task == task]
+        tried = sum(c.attempts for c in meta.collections if c.task == task)
+        lengths = [e.length for e in episodes] or [0]
+        success = sum(e.success for e in episodes) / max(len(episodes), 1)
+        points = min((e.min_points_in_crop for e in episodes), default=0)
+        length = f"{min(lengths)}/{sum(lengths) / len(lengths):.1f}/{max(lengths)}"
+        lines.append(f"{task:<22} {len(episodes):>5} {tried:>6} {length:>20} {success:>8.0%} {points:>16}")
+        lines.append(f"  env kwargs: {env_kwargs}")
+    lines.append("versions: " + ", ".join(f"{k} {v}" for k, v in meta.versions.items()))
+    return "\n".join(lines)

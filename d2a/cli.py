@@ -17,8 +17,11 @@ def _parse_box(text: str | None) -> tuple[tuple[float, ...], tuple[float, ...]] 
     return tuple(values[:3]), tuple(values[3:])
 
 
-def _add_env_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--task", default="hammer", help="task name or env id (see `d2a tasks`)")
+def _add_env_options(parser: argparse.ArgumentParser, several_tasks: bool = False) -> None:
+    if several_tasks:
+        parser.add_argument("--task", action="append", required=True, help="task name or env id; repeat for several")
+    else:
+        parser.add_argument("--task", default="hammer", help="task name or env id (see `d2a tasks`)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--backend", choices=("raycast", "render"), default=None)
     parser.add_argument("--cameras", default=None, help="comma-separated camera names, fused in the world frame")
@@ -56,6 +59,24 @@ def cmd_bench_envs(args: argparse.Namespace) -> None:
     from benchmarks.envs import EnvBenchConfig, run
 
     run(EnvBenchConfig(task=args.task, steps=args.steps, seed=args.seed))
+
+
+def cmd_collect(args: argparse.Namespace) -> None:
+    from collectors.collect import CollectConfig, collect
+
+    config = CollectConfig(
+        tasks=tuple(args.task), out=args.out, episodes=args.episodes, seed=args.seed,
+        max_attempts_factor=args.max_attempts_factor, max_episode_steps=args.max_episode_steps,
+        env_kwargs=_env_kwargs(args), append=args.append, overwrite=args.overwrite,
+    )
+    dataset = collect(config)
+    print(f"wrote {dataset.num_frames} steps in {len(dataset.metadata.episodes)} episodes to {dataset.directory}")
+
+
+def cmd_data_info(args: argparse.Namespace) -> None:
+    from collectors.storage import DemoDataset, describe
+
+    print(describe(DemoDataset.open(args.dir)))
 
 
 def cmd_demo(args: argparse.Namespace) -> None:
@@ -105,6 +126,22 @@ def build_parser() -> argparse.ArgumentParser:
     bench_envs.add_argument("--steps", type=int, default=100)
     bench_envs.add_argument("--seed", type=int, default=0)
     bench_envs.set_defaults(func=cmd_bench_envs)
+
+    collect = commands.add_parser("collect", help="scripted-expert demonstrations into a data set")
+    _add_env_options(collect, several_tasks=True)
+    collect.add_argument("--episodes", type=int, default=10, help="successful episodes to keep per task")
+    collect.add_argument("--out", required=True, help="data set directory")
+    collect.add_argument("--max-attempts-factor", type=int, default=3, help="give up after episodes x this attempts")
+    collect.add_argument("--max-episode-steps", type=int, default=200)
+    mode = collect.add_mutually_exclusive_group()
+    mode.add_argument("--append", action="store_true", help="add to (or resume) an existing data set")
+    mode.add_argument("--overwrite", action="store_true", help="replace an existing data set")
+    collect.set_defaults(func=cmd_collect)
+
+    data = commands.add_parser("data", help="data sets").add_subparsers(dest="what", required=True)
+    data_info = data.add_parser("info", help="episodes, lengths, success, point counts, size on disk")
+    data_info.add_argument("dir")
+    data_info.set_defaults(func=cmd_data_info)
 
     demo = commands.add_parser("demo", help="the end-to-end demo on an embedded default")
     _add_env_options(demo)

@@ -61,3 +61,28 @@ class PointCloudObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def close(self) -> None:
         self.sensor.close()
         super().close()
+
+
+class SeedEachReset(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """Give every episode its own seed: after ``reset(seed=s)``, the following unseeded
+    resets use s + 1, s + 2, ... and ``info["episode_seed"]`` says which seed an episode got.
+
+    Episode k of a run is then reproducible on its own (re-create it with ``reset(seed=s + k)``),
+    which is what makes collections resumable and evaluations comparable across worker
+    counts. Before any seed is given, resets are unseeded and ``episode_seed`` is -1.
+    """
+
+    def __init__(self, env: gym.Env, seed: int | None = None) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, seed=seed)
+        gym.Wrapper.__init__(self, env)
+        self._next_seed = seed
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        if seed is not None:
+            self._next_seed = seed
+        episode_seed = self._next_seed
+        if self._next_seed is not None:
+            self._next_seed += 1
+        observation, info = self.env.reset(seed=episode_seed, options=options)
+        info["episode_seed"] = -1 if episode_seed is None else episode_seed
+        return observation, info

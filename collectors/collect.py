@@ -1,0 +1,148 @@
+"""Collect scripted-expert demonstrations with a TorchRL ``Collector`` into a data set on disk.
+
+Episode k of a collection with seed s is reset with seed s + k, so every stored episode is
+reproducible on its own, and a killed collection resumes exactly where it stopped: re-run
+the same command with ``--append`` and the attempts already made are skipped.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from torchrl.collectors import Collector
+from tqdm import tqdm
+
+import d2a_envs
+from collectors.envs import make_torchrl_env
+from collectors.experts import ScriptedExpert
+from collectors.storage import CollectionRecord, DatasetError, DemoDataset, EpisodeRecord, episode_frames
+
+
+@dataclass(frozen=True)
+class CollectConfig:
+    """What ``d2a collect`` does.
+
+    Attributes:
+        tasks: task names or env ids; each gets ``episodes`` successful demonstrations.
+        out: data set directory.
+        episodes: successful episodes to keep per task (the paper: 10).
+        seed: seed of the first attempt; attempt k uses seed + k.
+        max_attempts_factor: give up on a task after ``episodes * max_attempts_factor`` attempts.
+        max_episode_steps: steps per episode (DP3/MP1: 200).
+        env_kwargs: point-cloud settings passed to ``gym.make`` (cameras, num_points, ...).
+        append: add to an existing data set (resuming an interrupted collection).
+        overwrite: replace an existing data set.
+        progress: show a progress bar.
+    """
+
+    tasks: tuple[str, ...]
+    out: str
+    episodes: int = 10
+    seed: int = 0
+    max_attempts_factor: int = 3
+    max_episode_steps: int = d2a_envs.DEFAULT_MAX_EPISODE_STEPS
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    append: bool = False
+    overwrite: bool = False
+    progress: bool = True
+
+
+def _open_output(config: CollectConfig) -> DemoDataset:
+    out = Path(config.out)
+    if config.append and config.overwrite:
+        raise ValueError("choose one of --append and --overwrite")
+    capacity = len(config.tasks) * config.episodes * config.max_episode_steps
+    if config.append:
+        if not out.exists() or not any(out.iterdir()):
+            return DemoDataset.create(out, capacity)
+        return DemoDataset.open(out)
+    return DemoDataset.create(out, capacity, overwrite=config.overwrite)
+
+
+def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> CollectionRecord:
+    """The record this run continues: the same task and seed resumes, anything else is new."""
+    env_kwargs = json.loads(json.dumps(_env_kwargs(config)))  # as stored: tuples become lists
+    known = dataset.metadata.tasks.setdefault(task, env_kwargs)
+    if known != env_kwargs:
+        raise DatasetError(
+            f"{dataset.directory} holds {task} collected with env kwargs {known}, not {env_kwargs}: "
+            f"collect into another directory"
+        )
+    for record in dataset.metadata.collections:
+        if record.task != task:
+            continue
+        if record.seed == config.seed:
+            return record
+        if record.seed <= config.seed < record.seed + record.attempts:
+            raise DatasetError(
+                f"seed {config.seed} was already used for {task} (seeds {record.seed}.."
+                f"{record.seed + record.attempts - 1}); pass --seed {record.seed} to resume that collection "
+                f"or a seed outside that range"
+            )
+    record = CollectionRecord(task=task, seed=config.seed)
+    dataset.metadata.collections.append(record)
+    return record
+
+
+def _env_kwargs(config: CollectConfig) -> dict[str, Any]:
+    return {**config.env_kwargs, "max_episode_steps": config.max_episode_steps}
+
+
+def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> CollectionRecord:
+    """Run the scripted expert on ``task`` until ``config.episodes`` successes are stored."""
+    spec = d2a_envs.get_task(task)
+    record = _collection_for(dataset, spec.name, config)
+    collection_index = dataset.metadata.collections.index(record)
+    max_attempts = config.episodes * config.max_attempts_factor
+    if record.kept >= config.episodes:
+        return record
+    env = make_torchrl_env(spec.name, _env_kwargs(config), seed=record.seed + record.attempts)
+    collector = Collector(
+        env, ScriptedExpert(spec.name), frames_per_batch=config.max_episode_steps,
+        trajs_per_batch=1, traj_format="cat", total_frames=-1,
+    )
+    bar = tqdm(total=config.episodes, initial=record.kept, desc=f"{spec.name} demos", disable=not config.progress)
+    try:
+        for rollout in collector:
+            episode_seed = int(rollout["episode_seed"][0])
+            record.attempts = episode_seed - record.seed + 1
+            success = bool(rollout["next", "success"].any())
+            if success:
+                index = len(dataset.metadata.episodes)
+                dataset.add_episode(
+                    episode_frames(rollout, index),
+                    EpisodeRecord(
+                        index=index, task=spec.name, start=0, length=0, success=True,
+                        episode_return=float(rollout["next", "reward"].sum()), collection=collection_index,
+                        attempt=episode_seed - record.seed, min_points_in_crop=int(rollout["num_points_in_crop"].min()),
+                    ),
+                )
+                record.kept += 1
+                bar.update(1)
+            dataset.commit()
+            bar.set_postfix(tried=record.attempts)
+            if record.kept >= config.episodes or record.attempts >= max_attempts:
+                break
+    finally:
+        bar.close()
+        collector.shutdown()
+    if record.kept < config.episodes:
+        message = f"{spec.name}: only {record.kept} successful episodes in {record.attempts} attempts"
+        warnings.warn(message, stacklevel=2)
+    return record
+
+
+def collect(config: CollectConfig) -> DemoDataset:
+    """Collect every task of ``config`` into ``config.out``; returns the data set."""
+    if config.episodes <= 0:
+        raise ValueError(f"episodes must be positive, got {config.episodes}")
+    specs = [d2a_envs.get_task(task) for task in config.tasks]  # unknown names fail before any work
+    dataset = _open_output(config)
+    for spec in specs:
+        record = collect_task(dataset, spec.name, config)
+        print(f"{spec.name}: kept {record.kept} successful episodes of {record.attempts} tried (seed {record.seed})")
+    return dataset
