@@ -1,0 +1,129 @@
+"""Demonstration collection: end to end, read back, refusal, kill and resume, reproducibility."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from collectors.collect import CollectConfig, collect
+from collectors.storage import METADATA_FILE, DatasetError, DemoDataset
+from d2a_envs.wrappers import SeedEachReset
+
+ENV_KWARGS = {"image_size": 48, "num_points": 128}
+
+
+def config(out: Path, **changes) -> CollectConfig:
+    return CollectConfig(**{"tasks": ("reach",), "out": str(out), "episodes": 2, "env_kwargs": ENV_KWARGS,
+                            "progress": False, **changes})
+
+
+@pytest.fixture(scope="module")
+def reach_dataset(tmp_path_factory) -> DemoDataset:
+    return collect(config(tmp_path_factory.mktemp("data") / "reach"))
+
+
+def test_collected_episodes_read_back(reach_dataset):
+    dataset = DemoDataset.open(reach_dataset.directory)
+    assert [e.task for e in dataset.metadata.episodes] == ["reach", "reach"]
+    assert dataset.num_frames == 400
+    for index in range(2):
+        episode = dataset.episode(index)
+        assert episode["point_cloud"].shape == (200, 128, 3)
+        assert torch.equal(episode["step"], torch.arange(200))
+        assert torch.all(episode["episode"] == index)
+        assert bool(episode["success"].any())
+        assert episode["action"].abs().max() <= 1.0
+
+
+def test_stored_episode_matches_an_independent_reset(reach_dataset):
+    """Episode k of seed s must be what ``reset(seed=s + k)`` gives through Gymnasium."""
+    dataset = DemoDataset.open(reach_dataset.directory)
+    record = dataset.metadata.episodes[1]
+    seed = dataset.metadata.collections[record.collection].seed + record.attempt
+    env = gym.make("D2A-MetaWorld-Reach-v0", **ENV_KWARGS)
+    observation, _ = env.reset(seed=seed)
+    first = dataset.episode(1)[0]
+    np.testing.assert_array_equal(first["point_cloud"].numpy(), observation["point_cloud"])
+    np.testing.assert_array_equal(first["state"].numpy(), observation["state"])
+
+
+def test_data_info_describes_the_set(reach_dataset):
+    from collectors.storage import describe
+
+    text = describe(DemoDataset.open(reach_dataset.directory))
+    assert "2 episodes, 400 steps" in text and "reach" in text and "100%" in text
+
+
+def test_existing_output_is_refused_without_append_or_overwrite(reach_dataset, tmp_path):
+    with pytest.raises(DatasetError, match="--append"):
+        collect(config(reach_dataset.directory))
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    with pytest.raises(DatasetError, match="not a D2A data set"):
+        collect(config(foreign, overwrite=True))
+    with pytest.raises(DatasetError, match="not a D2A data set"):
+        collect(config(foreign, append=True))
+    assert (foreign / "notes.txt").read_text() == "mine"
+
+
+def test_truncated_and_foreign_directories_get_clear_errors(reach_dataset, tmp_path):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(reach_dataset.directory, copy)
+    shutil.rmtree(copy / "buffer")
+    with pytest.raises(DatasetError, match="truncated"):
+        DemoDataset.open(copy)
+    (copy / METADATA_FILE).write_text("{not json")
+    with pytest.raises(DatasetError, match="unreadable"):
+        DemoDataset.open(copy)
+    with pytest.raises(DatasetError, match="does not exist"):
+        DemoDataset.open(tmp_path / "nowhere")
+
+
+def test_killed_collection_keeps_its_episodes_and_resumes_exactly(tmp_path):
+    killed = tmp_path / "killed"
+    command = [sys.executable, "-m", "d2a.cli", "collect", "--task", "reach", "--episodes", "3",
+               "--out", str(killed), "--image-size", "48", "--num-points", "128"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        metadata = killed / METADATA_FILE
+        if metadata.exists() and len(json.loads(metadata.read_text())["episodes"]) >= 1:
+            break
+        time.sleep(0.2)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    survived = DemoDataset.open(killed)
+    assert 1 <= len(survived.metadata.episodes) <= 3
+    resumed = collect(config(killed, episodes=3, append=True))
+    assert len(resumed.metadata.episodes) == 3
+    assert resumed.metadata.collections[0].attempts == 3
+
+    fresh = collect(config(tmp_path / "fresh", episodes=3))
+    for key in ("point_cloud", "state", "action"):
+        assert torch.equal(resumed.frames()[key], fresh.frames()[key]), key
+
+
+def test_seed_each_reset_gives_consecutive_seeds():
+    env = SeedEachReset(gym.make("D2A-MetaWorld-Push-v0", **ENV_KWARGS), seed=5)
+    seeds, states = [], []
+    for _ in range(3):
+        observation, info = env.reset()
+        seeds.append(info["episode_seed"])
+        states.append(observation["state"])
+    assert seeds == [5, 6, 7]
+    plain = gym.make("D2A-MetaWorld-Push-v0", **ENV_KWARGS)
+    np.testing.assert_array_equal(plain.reset(seed=6)[0]["state"], states[1])
+    _, info = env.reset(seed=100)
+    assert info["episode_seed"] == 100 and env.reset()[1]["episode_seed"] == 101
