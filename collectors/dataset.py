@@ -26,7 +26,6 @@ without loading the whole data set.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +33,8 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch.utils.data import Dataset
+
+from d2a.atomic import atomic_torch_save
 
 RANGE_EPS = 1e-4  # dimensions whose data range is below this are treated as constant (DP3's range_eps)
 
@@ -150,13 +151,7 @@ def fit_normalizers(
 
 def save_normalizers(path: str | Path, normalizers: Mapping[str, Normalizer]) -> None:
     """Write ``normalizers`` to one file atomically (a reader never sees a half-written file)."""
-    path = Path(path)
-    temporary = path.with_name(path.name + ".tmp")
-    with open(temporary, "wb") as handle:
-        torch.save({key: normalizer.state_dict() for key, normalizer in normalizers.items()}, handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(temporary, path)
+    atomic_torch_save({key: normalizer.state_dict() for key, normalizer in normalizers.items()}, path)
 
 
 def load_normalizers(path: str | Path) -> dict[str, Normalizer]:

@@ -27,6 +27,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 
+from d2a.atomic import atomic_write_text
+
 FORMAT = "d2a-demonstrations"
 FORMAT_VERSION = 1
 METADATA_FILE = "d2a_dataset.json"
@@ -100,15 +102,6 @@ def package_versions() -> dict[str, str]:
         except package_metadata.PackageNotFoundError:
             versions[name] = "not installed"
     return versions
-
-
-def _write_atomically(path: Path, text: str) -> None:
-    temporary = path.with_suffix(path.suffix + ".tmp")
-    with open(temporary, "w") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(temporary, path)
 
 
 def _new_buffer(directory: Path, capacity: int) -> TensorDictReplayBuffer:
@@ -196,7 +189,7 @@ class DemoDataset:
         self.buffer.writer._cursor = frames
 
     def _save_metadata(self) -> None:
-        _write_atomically(self.directory / METADATA_FILE, self.metadata.to_json())
+        atomic_write_text(self.directory / METADATA_FILE, self.metadata.to_json())
 
     def ensure_capacity(self, extra_frames: int) -> None:
         """Grow the storage (by copying) if ``extra_frames`` more steps would not fit."""
