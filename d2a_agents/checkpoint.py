@@ -1,0 +1,42 @@
+"""Checkpoints that carry their configuration, so that a mismatched use is refused clearly."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from d2a.atomic import atomic_torch_save
+
+FORMAT = "d2a-checkpoint"
+FORMAT_VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, foreign, of another kind, or does not fit its use."""
+
+
+def save_checkpoint(path: str | Path, kind: str, payload: dict[str, Any]) -> None:
+    """Atomically write ``payload`` tagged with the format and ``kind`` (e.g. ``world_model``)."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    atomic_torch_save({"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind, **payload}, path)
+
+
+def load_checkpoint(path: str | Path, kind: str) -> dict[str, Any]:
+    """Read a checkpoint written by :func:`save_checkpoint` and check that it is a ``kind``."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as error:  # torch raises many types for a file that is not a checkpoint
+        raise CheckpointError(f"{path} is not a readable checkpoint: {error}") from error
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not a D2A checkpoint")
+    if payload.get("format_version") != FORMAT_VERSION:
+        version = payload.get("format_version")
+        raise CheckpointError(f"{path} has checkpoint format v{version}, expected v{FORMAT_VERSION}")
+    if payload.get("kind") != kind:
+        raise CheckpointError(f"{path} is a {payload.get('kind')} checkpoint, not a {kind}")
+    return payload

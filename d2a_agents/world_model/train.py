@@ -1,0 +1,181 @@
+"""Train the triplane world model on stored demonstrations (``d2a train-wm``).
+
+Held-out episodes (the last ``holdout_fraction`` of each task's episodes, at least one)
+never enter training; they give the validation metrics. Checkpoints are written
+atomically every ``checkpoint_every`` steps and carry the model config, the voxel grid,
+the tasks and the env kwargs; re-running the same command resumes from the last one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from collectors.storage import DemoDataset
+from d2a_agents.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from d2a_agents.world_model.data import WorldModelTransitions
+from d2a_agents.world_model.imagine import CHECKPOINT_KIND, predict_grid
+from d2a_agents.world_model.losses import balanced_queries, focal_loss
+from d2a_agents.world_model.metrics import IoUAccumulator
+from d2a_agents.world_model.triplane import CPU_PRESET, TriplaneWorldModel, WorldModelConfig
+from d2a_agents.world_model.voxels import VoxelGrid
+from d2a_envs.sampling import CropBox
+from d2a_envs.tasks import get_task
+
+
+@dataclass(frozen=True)
+class TrainWorldModelConfig:
+    """Every knob of ``d2a train-wm`` (model sizes live in ``model``)."""
+
+    data: str
+    out: str
+    model: WorldModelConfig = CPU_PRESET
+    steps: int = 2000
+    batch_size: int = 4
+    learning_rate: float = 1e-3
+    queries: int = 8192
+    near_distance: int = 5
+    focal_alpha: float | None = None  # balanced queries already balance the classes
+    focal_gamma: float = 2.0
+    holdout_fraction: float = 0.2
+    validate_every: int = 500
+    validation_stride: int = 5  # evaluate every k-th held-out transition
+    checkpoint_every: int = 100
+    seed: int = 0
+    progress: bool = True
+    crop_box: tuple[tuple[float, ...], tuple[float, ...]] | None = field(default=None)  # default: the suite's
+
+
+@dataclass
+class ValidationResult:
+    """Accumulated held-out metrics of the model and of the persistence baseline."""
+
+    step: int
+    full_iou: float
+    dynamic_iou: float
+    persistence_full_iou: float
+    transitions: int
+
+
+def split_episodes(dataset: DemoDataset, holdout_fraction: float) -> tuple[list[int], list[int]]:
+    """(train, held-out) episode ids: the last ``holdout_fraction`` of each task's episodes."""
+    train, held_out = [], []
+    for task in dataset.metadata.tasks:
+        ids = [e.index for e in dataset.metadata.episodes if e.task == task]
+        n_held = max(1, round(len(ids) * holdout_fraction)) if len(ids) > 1 else 0
+        train += ids[: len(ids) - n_held]
+        held_out += ids[len(ids) - n_held :]
+    if not train or not held_out:
+        raise ValueError(f"{dataset.directory} needs at least two episodes per task to hold one out")
+    return train, held_out
+
+
+def dataset_crop_box(dataset: DemoDataset) -> CropBox:
+    """The workspace box the data was collected with (all tasks must share one suite)."""
+    import d2a_envs
+
+    suites = {get_task(task).suite for task in dataset.metadata.tasks}
+    if len(suites) != 1:
+        raise ValueError(f"tasks of several suites {sorted(suites)} cannot share one voxel grid")
+    boxes = {json.dumps(kwargs.get("crop_box")) for kwargs in dataset.metadata.tasks.values()}
+    if len(boxes) != 1:
+        raise ValueError("the tasks of this data set use different crop boxes")
+    box = next(iter(dataset.metadata.tasks.values())).get("crop_box")
+    return CropBox.from_any(box) if box is not None else d2a_envs.SUITE_DEFAULTS[suites.pop()].crop_box
+
+
+@torch.no_grad()
+def validate(model: TriplaneWorldModel, transitions: WorldModelTransitions, stride: int, step: int) -> ValidationResult:
+    """Full-grid and dynamic IoU (threshold 0.5) over every ``stride``-th held-out transition."""
+    model.eval()
+    ours, persistence = IoUAccumulator(), IoUAccumulator()
+    indices = torch.arange(0, len(transitions), stride)
+    for chunk in indices.split(8):
+        batch = transitions.get(chunk)
+        ours.update(batch.current, predict_grid(model, batch.current, batch.actions), batch.target)
+        persistence.update(batch.current, batch.current, batch.target)
+    model.train()
+    return ValidationResult(step, ours.full_iou, ours.dynamic_iou, persistence.full_iou, len(indices))
+
+
+def _payload(config: TrainWorldModelConfig, dataset: DemoDataset, grid: VoxelGrid) -> dict:
+    return {
+        "config": config.model.to_dict(),
+        "grid": {"box": {"low": grid.box.low, "high": grid.box.high}, "resolution": list(grid.resolution)},
+        "tasks": sorted(dataset.metadata.tasks),
+        "env_kwargs": dataset.metadata.tasks,
+        "num_points": int(dataset.frames()["point_cloud"].shape[1]),
+        "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "model"},
+    }
+
+
+def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel, list[ValidationResult]]:
+    """Train (or resume) and return the model and its validation history."""
+    dataset = DemoDataset.open(config.data)
+    box = CropBox.from_any(config.crop_box) if config.crop_box is not None else dataset_crop_box(dataset)
+    grid = VoxelGrid(box, config.model.resolution)
+    action_dim = int(dataset.frames()["action"].shape[-1])
+    model_config = dataclasses.replace(config.model, action_dim=action_dim)
+    config = dataclasses.replace(config, model=model_config)
+    train_ids, held_out_ids = split_episodes(dataset, config.holdout_fraction)
+    frames = dataset.frames()
+    train = WorldModelTransitions(frames, grid, model_config.horizon, model_config.action_history, train_ids)
+    held_out = WorldModelTransitions(frames, grid, model_config.horizon, model_config.action_history, held_out_ids)
+
+    torch.manual_seed(config.seed)
+    model = TriplaneWorldModel(model_config)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.learning_rate)
+    generator = torch.Generator().manual_seed(config.seed)
+    payload = _payload(config, dataset, grid)
+    start, history = 0, []
+    out = Path(config.out)
+    if out.exists():
+        previous = load_checkpoint(out, CHECKPOINT_KIND)
+        for key in ("config", "grid", "tasks"):
+            if previous[key] != payload[key]:
+                raise CheckpointError(f"{out} was trained with another {key} ({previous[key]}); choose another --out")
+        model.load_state_dict(previous["model"])
+        optimizer.load_state_dict(previous["optimizer"])
+        generator.set_state(previous["generator"])
+        start, history = previous["step"], [ValidationResult(**v) for v in previous["history"]]
+
+    def checkpoint(step: int) -> None:
+        save_checkpoint(out, CHECKPOINT_KIND, {
+            **payload, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+            "generator": generator.get_state(), "step": step, "history": [dataclasses.asdict(v) for v in history],
+        })
+
+    resolution = torch.tensor(model_config.resolution, dtype=torch.float32)
+    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc="world model",
+               disable=not config.progress)
+    started = time.perf_counter()
+    for step in bar:
+        batch = train.sample(config.batch_size, generator)
+        indices, labels = balanced_queries(batch.target, config.queries, config.near_distance, generator)
+        queries = (indices.float() + 0.5) / resolution * 2.0 - 1.0
+        logits = model(batch.current, batch.actions, queries)
+        loss = focal_loss(logits, labels, alpha=config.focal_alpha, gamma=config.focal_gamma)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        bar.set_postfix(loss=f"{loss.item():.4f}")
+        done = step + 1
+        if done % config.validate_every == 0 or done == config.steps:
+            result = validate(model, held_out, config.validation_stride, done)
+            history.append(result)
+            bar.write(f"step {done}: held-out IoU {result.full_iou:.3f} "
+                      f"(persistence {result.persistence_full_iou:.3f}), dynamic IoU {result.dynamic_iou:.3f}")
+        if done % config.checkpoint_every == 0 or done == config.steps:
+            checkpoint(done)
+    bar.close()
+    if start >= config.steps and not history:
+        history.append(validate(model, held_out, config.validation_stride, start))
+    if config.progress:
+        print(f"trained {config.steps - start} steps in {time.perf_counter() - started:.0f} s -> {out}")
+    return model, history

@@ -1,0 +1,173 @@
+"""The triplane world model: current occupancy + past actions -> occupancy H steps ahead.
+
+Pipeline (paper, section III-B): voxel grid V_t -> Conv3d encoder -> feature volume
+C x X x Y x Z, modulated by the action history (FiLM, zero-initialised so training starts
+from "nothing moves") -> axis-wise mean pooling to three planes P_xy (X x Y), P_xz (X x Z),
+P_yz (Y x Z) -> a few dilated 2D convolutions per plane -> for a query point p,
+f_p = P_xy(x, y) + P_xz(x, z) + P_yz(y, z) by bilinear interpolation (eq. 1-2) ->
+MLP on [f_p, PE(p)] -> occupancy logit of p at t + H (eq. 3).
+
+Ablations (Table II): ``xy`` keeps only P_xy; ``volume`` samples the 3D feature volume
+trilinearly instead of planes (3D dilated convolutions in place of the 2D ones).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+FEATURE_MODES = ("triplane", "xy", "volume")
+
+
+@dataclass(frozen=True)
+class WorldModelConfig:
+    """Every hyperparameter of the world model (defaults: the paper's sizes).
+
+    Attributes:
+        resolution: voxel grid (X, Y, Z) over the workspace box; the encoder keeps it, so it
+            is also the encoded size (H', W', D') = (128, 128, 32) of the paper.
+        channels: feature dimension C (paper: 16).
+        feature_mode: ``triplane`` (the method), ``xy`` or ``volume`` (ablations).
+        horizon: H, how many control steps ahead the model imagines.
+        action_history: how many past actions condition the prediction.
+        action_dim: size of one action.
+        refine_dilations: dilations of the per-plane (or volume) refinement convolutions;
+            they widen the receptive field so that motion over H steps can be represented.
+        pe_frequencies: sinusoidal positional-embedding frequencies per axis.
+        decoder_hidden, decoder_layers: width and depth of the occupancy MLP.
+    """
+
+    resolution: tuple[int, int, int] = (128, 128, 32)
+    channels: int = 16
+    feature_mode: str = "triplane"
+    horizon: int = 4
+    action_history: int = 4
+    action_dim: int = 4
+    refine_dilations: tuple[int, ...] = (1, 2, 4)
+    pe_frequencies: int = 6
+    decoder_hidden: int = 64
+    decoder_layers: int = 3
+
+    def __post_init__(self) -> None:
+        if self.feature_mode not in FEATURE_MODES:
+            raise ValueError(f"feature_mode must be one of {FEATURE_MODES}, got {self.feature_mode!r}")
+        if self.horizon < 1 or self.action_history < 1:
+            raise ValueError("horizon and action_history must be >= 1")
+        object.__setattr__(self, "resolution", tuple(int(r) for r in self.resolution))
+        object.__setattr__(self, "refine_dilations", tuple(int(d) for d in self.refine_dilations))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+# A CPU preset: a quarter of the paper's grid per axis in x, y and half in z, the same C.
+CPU_PRESET = WorldModelConfig(resolution=(64, 64, 16))
+
+
+def sample_plane(plane: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Bilinear features of a (B, C, Hp, Wp) plane at coordinates in [-1, 1].
+
+    ``u`` indexes the first spatial axis (Hp) and ``v`` the second (Wp), both (B, Q); -1 and
+    1 are the outer edges of the plane (``align_corners=False``), so cell i is centred at
+    (i + 0.5) / Hp * 2 - 1. Returns (B, Q, C). ``grid_sample`` reads grid[..., 0] along the
+    last axis, hence the (v, u) order.
+    """
+    grid = torch.stack([v, u], dim=-1).unsqueeze(1)  # (B, 1, Q, 2)
+    features = F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return features.squeeze(2).transpose(1, 2)
+
+
+def sample_volume(volume: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
+    """Trilinear features of a (B, C, X, Y, Z) volume at (B, Q, 3) coordinates in [-1, 1]."""
+    grid = xyz.flip(-1)[:, :, None, None, :]  # grid_sample's 5-D grid is ordered (z, y, x)
+    features = F.grid_sample(volume, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return features.reshape(volume.shape[0], volume.shape[1], -1).transpose(1, 2)
+
+
+def positional_embedding(xyz: torch.Tensor, frequencies: int) -> torch.Tensor:
+    """[xyz, sin(2^k pi xyz), cos(2^k pi xyz)] for k < frequencies: (..., 3 + 6 * frequencies)."""
+    scales = (2.0 ** torch.arange(frequencies, device=xyz.device, dtype=xyz.dtype)) * math.pi
+    angles = (xyz[..., None] * scales).flatten(-2)
+    return torch.cat([xyz, angles.sin(), angles.cos()], dim=-1)
+
+
+def _refiner(dimensions: int, channels: int, dilations: tuple[int, ...]) -> nn.Sequential:
+    conv = nn.Conv2d if dimensions == 2 else nn.Conv3d
+    layers: list[nn.Module] = []
+    for dilation in dilations:
+        layers += [conv(channels, channels, 3, padding=dilation, dilation=dilation)]
+        layers += [nn.GroupNorm(4, channels), nn.SiLU()]
+    return nn.Sequential(*layers)
+
+
+class TriplaneWorldModel(nn.Module):
+    """Occupancy of the scene H steps ahead from the current grid and the past actions.
+
+    Example:
+        >>> model = TriplaneWorldModel(CPU_PRESET)
+        >>> logits = model(occupancy, actions, queries)  # (B, X, Y, Z), (B, K, A), (B, Q, 3) in [-1, 1]
+        >>> logits.shape
+        torch.Size([B, Q])
+    """
+
+    def __init__(self, config: WorldModelConfig) -> None:
+        super().__init__()
+        self.config = config
+        c = config.channels
+        self.encoder = nn.Sequential(
+            nn.Conv3d(1, c, 3, padding=1), nn.GroupNorm(4, c), nn.SiLU(),
+            nn.Conv3d(c, c, 3, padding=1), nn.GroupNorm(4, c), nn.SiLU(),
+        )
+        self.film = nn.Sequential(
+            nn.Linear(config.action_history * config.action_dim, 128), nn.SiLU(), nn.Linear(128, 2 * c)
+        )
+        nn.init.zeros_(self.film[-1].weight)
+        nn.init.zeros_(self.film[-1].bias)
+        if config.feature_mode == "volume":
+            self.refine = nn.ModuleList([_refiner(3, c, config.refine_dilations)])
+        else:
+            planes = 3 if config.feature_mode == "triplane" else 1
+            self.refine = nn.ModuleList([_refiner(2, c, config.refine_dilations) for _ in range(planes)])
+        width = c + 3 + 6 * config.pe_frequencies
+        layers: list[nn.Module] = []
+        for _ in range(config.decoder_layers - 1):
+            layers += [nn.Linear(width, config.decoder_hidden), nn.SiLU()]
+            width = config.decoder_hidden
+        layers.append(nn.Linear(width, 1))
+        self.decoder = nn.Sequential(*layers)
+
+    def encode(self, occupancy: torch.Tensor, actions: torch.Tensor) -> list[torch.Tensor]:
+        """Feature planes (or the volume) of a batch: occupancy (B, X, Y, Z), actions (B, K, A)."""
+        volume = self.encoder(occupancy.float().unsqueeze(1))
+        gamma, beta = self.film(actions.flatten(1)).chunk(2, dim=-1)
+        volume = volume * (1 + gamma[:, :, None, None, None]) + beta[:, :, None, None, None]
+        mode = self.config.feature_mode
+        if mode == "volume":
+            return [self.refine[0](volume)]
+        planes = [volume.mean(dim=4)]  # xy: (B, C, X, Y)
+        if mode == "triplane":
+            planes += [volume.mean(dim=3), volume.mean(dim=2)]  # xz: (B, C, X, Z), yz: (B, C, Y, Z)
+        return [refine(plane) for refine, plane in zip(self.refine, planes, strict=True)]
+
+    def query_features(self, features: list[torch.Tensor], queries: torch.Tensor) -> torch.Tensor:
+        """Summed features (B, Q, C) at queries (B, Q, 3) given in [-1, 1] box coordinates."""
+        x, y, z = queries.unbind(-1)
+        if self.config.feature_mode == "volume":
+            return sample_volume(features[0], queries)
+        summed = sample_plane(features[0], x, y)
+        if self.config.feature_mode == "triplane":
+            summed = summed + sample_plane(features[1], x, z) + sample_plane(features[2], y, z)
+        return summed
+
+    def decode(self, features: list[torch.Tensor], queries: torch.Tensor) -> torch.Tensor:
+        """Occupancy logits (B, Q) at queries (B, Q, 3) in [-1, 1]."""
+        inputs = torch.cat([self.query_features(features, queries),
+                            positional_embedding(queries, self.config.pe_frequencies)], dim=-1)
+        return self.decoder(inputs).squeeze(-1)
+
+    def forward(self, occupancy: torch.Tensor, actions: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
+        return self.decode(self.encode(occupancy, actions), queries)
