@@ -5,7 +5,10 @@ C x X x Y x Z, modulated by the action history (FiLM, zero-initialised so traini
 from "nothing moves") -> axis-wise mean pooling to three planes P_xy (X x Y), P_xz (X x Z),
 P_yz (Y x Z) -> a few dilated 2D convolutions per plane -> for a query point p,
 f_p = P_xy(x, y) + P_xz(x, z) + P_yz(y, z) by bilinear interpolation (eq. 1-2) ->
-MLP on [f_p, PE(p)] -> occupancy logit of p at t + H (eq. 3).
+MLP on [f_p, PE(p), V_t(p)] -> occupancy logit of p at t + H (eq. 3).
+
+V_t(p), the current occupancy at the query, is an addition to eq. 3 (``occupancy_skip``):
+with it "nothing moves" is one weight away, so the features only have to encode change.
 
 Ablations (Table II): ``xy`` keeps only P_xy; ``volume`` samples the 3D feature volume
 trilinearly instead of planes (3D dilated convolutions in place of the 2D ones).
@@ -39,6 +42,7 @@ class WorldModelConfig:
             they widen the receptive field so that motion over H steps can be represented.
         pe_frequencies: sinusoidal positional-embedding frequencies per axis.
         decoder_hidden, decoder_layers: width and depth of the occupancy MLP.
+        occupancy_skip: also feed the current occupancy at the query to the decoder.
     """
 
     resolution: tuple[int, int, int] = (128, 128, 32)
@@ -51,6 +55,7 @@ class WorldModelConfig:
     pe_frequencies: int = 6
     decoder_hidden: int = 64
     decoder_layers: int = 3
+    occupancy_skip: bool = True
 
     def __post_init__(self) -> None:
         if self.feature_mode not in FEATURE_MODES:
@@ -132,7 +137,7 @@ class TriplaneWorldModel(nn.Module):
         else:
             planes = 3 if config.feature_mode == "triplane" else 1
             self.refine = nn.ModuleList([_refiner(2, c, config.refine_dilations) for _ in range(planes)])
-        width = c + 3 + 6 * config.pe_frequencies
+        width = c + 3 + 6 * config.pe_frequencies + int(config.occupancy_skip)
         layers: list[nn.Module] = []
         for _ in range(config.decoder_layers - 1):
             layers += [nn.Linear(width, config.decoder_hidden), nn.SiLU()]
@@ -141,17 +146,22 @@ class TriplaneWorldModel(nn.Module):
         self.decoder = nn.Sequential(*layers)
 
     def encode(self, occupancy: torch.Tensor, actions: torch.Tensor) -> list[torch.Tensor]:
-        """Feature planes (or the volume) of a batch: occupancy (B, X, Y, Z), actions (B, K, A)."""
-        volume = self.encoder(occupancy.float().unsqueeze(1))
+        """Feature planes (or the volume) of a batch: occupancy (B, X, Y, Z), actions (B, K, A).
+
+        With ``occupancy_skip`` the current occupancy volume (B, 1, X, Y, Z) is appended last.
+        """
+        grid = occupancy.float().unsqueeze(1)
+        skip = [grid] if self.config.occupancy_skip else []
+        volume = self.encoder(grid)
         gamma, beta = self.film(actions.flatten(1)).chunk(2, dim=-1)
         volume = volume * (1 + gamma[:, :, None, None, None]) + beta[:, :, None, None, None]
         mode = self.config.feature_mode
         if mode == "volume":
-            return [self.refine[0](volume)]
+            return [self.refine[0](volume), *skip]
         planes = [volume.mean(dim=4)]  # xy: (B, C, X, Y)
         if mode == "triplane":
             planes += [volume.mean(dim=3), volume.mean(dim=2)]  # xz: (B, C, X, Z), yz: (B, C, Y, Z)
-        return [refine(plane) for refine, plane in zip(self.refine, planes, strict=True)]
+        return [*(refine(plane) for refine, plane in zip(self.refine, planes, strict=True)), *skip]
 
     def query_features(self, features: list[torch.Tensor], queries: torch.Tensor) -> torch.Tensor:
         """Summed features (B, Q, C) at queries (B, Q, 3) given in [-1, 1] box coordinates."""
@@ -165,9 +175,10 @@ class TriplaneWorldModel(nn.Module):
 
     def decode(self, features: list[torch.Tensor], queries: torch.Tensor) -> torch.Tensor:
         """Occupancy logits (B, Q) at queries (B, Q, 3) in [-1, 1]."""
-        inputs = torch.cat([self.query_features(features, queries),
-                            positional_embedding(queries, self.config.pe_frequencies)], dim=-1)
-        return self.decoder(inputs).squeeze(-1)
+        inputs = [self.query_features(features, queries), positional_embedding(queries, self.config.pe_frequencies)]
+        if self.config.occupancy_skip:
+            inputs.append(sample_volume(features[-1], queries))
+        return self.decoder(torch.cat(inputs, dim=-1)).squeeze(-1)
 
     def forward(self, occupancy: torch.Tensor, actions: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
         return self.decode(self.encode(occupancy, actions), queries)
