@@ -27,11 +27,13 @@ def make_env(
     backend: str | None = None,
     with_rgb: bool | None = None,
     state_obs: bool = True,
+    world_model: str | None = None,
 ) -> gym.Env:
     """A suite env with point-cloud observations; ``None`` arguments take the suite default.
 
     Prefer ``gym.make("D2A-MetaWorld-Hammer-v0", **kwargs)``, which adds the 200-step time
-    limit; the keyword arguments are the same.
+    limit; the keyword arguments are the same. ``world_model`` (a checkpoint of ``d2a train-wm``)
+    adds ``imagined_point_cloud`` through :class:`~d2a_envs.imagination.ImaginationWrapper`.
     """
     if suite not in _SUITE_ENVS:
         raise ValueError(f"unknown suite {suite!r}; choose one of {sorted(_SUITE_ENVS)}")
@@ -39,4 +41,9 @@ def make_env(
         cameras=cameras, image_size=image_size, num_points=num_points,
         crop_box=crop_box, backend=backend, with_rgb=with_rgb,
     )
-    return PointCloudObservation(_SUITE_ENVS[suite](task, state_obs=state_obs), config)
+    env = PointCloudObservation(_SUITE_ENVS[suite](task, state_obs=state_obs), config)
+    if world_model is not None:
+        from d2a_envs.imagination import ImaginationWrapper
+
+        env = ImaginationWrapper(env, world_model)
+    return env
