@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -79,6 +80,34 @@ def cmd_data_info(args: argparse.Namespace) -> None:
     print(describe(DemoDataset.open(args.dir)))
 
 
+def cmd_train_wm(args: argparse.Namespace) -> None:
+    from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
+    from d2a_agents.world_model.triplane import CPU_PRESET, WorldModelConfig
+
+    base = CPU_PRESET if args.preset == "cpu" else WorldModelConfig()
+    changes = dict(horizon=args.horizon, action_history=args.history, channels=args.channels,
+                   feature_mode=args.feature_mode, resolution=tuple(args.resolution) if args.resolution else None)
+    model = dataclasses.replace(base, **{k: v for k, v in changes.items() if v is not None})
+    config = TrainWorldModelConfig(
+        data=args.data, out=args.out, model=model, steps=args.steps, batch_size=args.batch_size,
+        learning_rate=args.lr, queries=args.queries, validate_every=args.validate_every, seed=args.seed,
+    )
+    _, history = train_world_model(config)
+    if history:
+        last = history[-1]
+        print(f"held-out full-grid IoU {last.full_iou:.3f} (persistence {last.persistence_full_iou:.3f}), "
+              f"dynamic IoU {last.dynamic_iou:.3f}, over {last.transitions} transitions, threshold 0.5")
+
+
+def cmd_viz_imagine(args: argparse.Namespace) -> None:
+    import d2a_envs  # noqa: F401  (registers the ids)
+    from d2a_agents.world_model.viz import plot_task_imagination
+
+    steps = tuple(int(step) for step in args.steps.split(","))
+    path = plot_task_imagination(args.world_model, args.task, args.out, args.seed, steps, **_env_kwargs(args))
+    print(f"wrote {path}")
+
+
 def cmd_demo(args: argparse.Namespace) -> None:
     """A short point-cloud episode: reset, random steps with a progress bar, a picture."""
     import gymnasium as gym
@@ -120,6 +149,13 @@ def build_parser() -> argparse.ArgumentParser:
     pointcloud.add_argument("--out", required=True)
     pointcloud.set_defaults(func=cmd_viz_pointcloud)
 
+    imagine = viz.add_parser("imagine", help="current, imagined and true future clouds over an episode")
+    _add_env_options(imagine)
+    imagine.add_argument("--world-model", required=True, help="checkpoint of d2a train-wm")
+    imagine.add_argument("--steps", default="10,40,70,100,130", help="comma-separated control steps to draw")
+    imagine.add_argument("--out", required=True)
+    imagine.set_defaults(func=cmd_viz_imagine)
+
     bench = commands.add_parser("bench", help="benchmarks (print figures)").add_subparsers(dest="what", required=True)
     bench_envs = bench.add_parser("envs", help="env steps/s per depth backend")
     bench_envs.add_argument("--task", default="hammer")
@@ -137,6 +173,24 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--append", action="store_true", help="add to (or resume) an existing data set")
     mode.add_argument("--overwrite", action="store_true", help="replace an existing data set")
     collect.set_defaults(func=cmd_collect)
+
+    train_wm = commands.add_parser("train-wm", help="train the triplane world model on a data set")
+    train_wm.add_argument("--data", required=True, help="data set directory (d2a collect)")
+    train_wm.add_argument("--out", required=True, help="checkpoint file; an existing one is resumed")
+    train_wm.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
+                          help="cpu: 64x64x16 grid; paper: 128x128x32 (GPU work)")
+    train_wm.add_argument("--resolution", type=int, nargs=3, default=None, metavar=("X", "Y", "Z"))
+    train_wm.add_argument("--horizon", type=int, default=None, help="H, steps imagined ahead")
+    train_wm.add_argument("--history", type=int, default=None, help="past actions conditioning the model")
+    train_wm.add_argument("--channels", type=int, default=None, help="feature dimension C")
+    train_wm.add_argument("--feature-mode", choices=("triplane", "xy", "volume"), default=None)
+    train_wm.add_argument("--steps", type=int, default=2000)
+    train_wm.add_argument("--batch-size", type=int, default=4)
+    train_wm.add_argument("--lr", type=float, default=1e-3)
+    train_wm.add_argument("--queries", type=int, default=8192)
+    train_wm.add_argument("--validate-every", type=int, default=500)
+    train_wm.add_argument("--seed", type=int, default=0)
+    train_wm.set_defaults(func=cmd_train_wm)
 
     data = commands.add_parser("data", help="data sets").add_subparsers(dest="what", required=True)
     data_info = data.add_parser("info", help="episodes, lengths, success, point counts, size on disk")

@@ -79,3 +79,35 @@ def plot_task_point_cloud(task: str, out: str | Path, seed: int = 0, steps: int 
         return plot_point_cloud(raw, observation["point_cloud"], config.crop_box, title, out)
     finally:
         env.close()
+
+
+def plot_imagination(
+    frames: list[dict[str, np.ndarray]], horizon: int, title: str, out: str | Path, box: CropBox
+) -> Path:
+    """One panel per frame: current cloud (opaque blue), imagined cloud (translucent orange)
+    and the true cloud ``horizon`` steps later (translucent green), as in the paper's Fig. 3.
+
+    Each frame is a dict with ``step``, ``current``, ``imagined``, ``future`` and the Chamfer
+    distances ``imagined_error`` and ``persistence_error`` shown in its title."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig = plt.figure(figsize=(4.6 * len(frames), 5))
+    for index, frame in enumerate(frames, start=1):
+        ax = fig.add_subplot(1, len(frames), index, projection="3d")
+        ax.scatter(*frame["current"][:, :3].T, s=2, c="tab:blue", alpha=0.8, depthshade=False, label="current")
+        ax.scatter(*frame["imagined"][:, :3].T, s=2, c="tab:orange", alpha=0.25, depthshade=False, label="imagined")
+        ax.scatter(*frame["future"][:, :3].T, s=1, c="tab:green", alpha=0.25, depthshade=False,
+                   label=f"true t+{horizon}")
+        for edge in _box_edges(box):
+            ax.plot(*edge.T, color="red", linewidth=0.5)
+        ax.view_init(elev=25, azim=-60)
+        ax.set_aspect("equal")
+        ax.set_title(f"t = {frame['step']}\nChamfer imagined {frame['imagined_error'] * 100:.1f} cm, "
+                     f"copy-now {frame['persistence_error'] * 100:.1f} cm", fontsize=9)
+        if index == 1:
+            ax.legend(loc="upper left", fontsize=8, markerscale=4)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
