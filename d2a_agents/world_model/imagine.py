@@ -77,7 +77,10 @@ class Imaginer:
     def from_checkpoint(cls, path: str | Path, num_points: int | None = None, **kwargs: object) -> Imaginer:
         payload = load_checkpoint(path, CHECKPOINT_KIND)
         model = TriplaneWorldModel(WorldModelConfig(**payload["config"]))
-        model.load_state_dict(payload["model"])
+        try:
+            model.load_state_dict(payload["model"])
+        except RuntimeError as error:
+            raise CheckpointError(f"{path} does not match this version's world model: {error}") from error
         box = CropBox(**payload["grid"]["box"])
         grid = VoxelGrid(box, tuple(payload["grid"]["resolution"]))
         return cls(model, grid, num_points or payload["num_points"], **kwargs)
