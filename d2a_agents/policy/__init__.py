@@ -1,0 +1,1 @@
+"""Action experts: the MeanFlow policy with adaptive CFG and its baselines."""

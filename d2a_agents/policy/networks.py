@@ -1,0 +1,126 @@
+"""Networks shared by every action expert: observation encoders and the velocity network.
+
+Encoders (DP3 style, paper section III-C): a per-point MLP 3 -> 64 -> 128 -> 256 with
+LayerNorm + ReLU, max-pooled over points and projected to 64, one for the current and one
+for the imagined cloud; an MLP for the robot state; the last ``n_obs_steps`` observations
+of each are concatenated into the condition f_c.
+
+The velocity network u(z, r, t | c) maps a noisy action chunk z (B, T, A), two times r <= t
+in [0, 1] and the condition to a chunk of the same shape. Flow models read it as the
+average velocity on [r, t] (MeanFlow; r = t gives the instantaneous velocity); the
+diffusion baseline calls it with r = t and reads the output as the predicted noise. Where
+``drop`` is true, the condition is replaced by a learned null embedding: the unconditional
+branch that classifier-free guidance needs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    """Observation encoders (defaults: DP3 widths, 64-d per modality as in the paper)."""
+
+    point_widths: tuple[int, ...] = (64, 128, 256)
+    embed_dim: int = 64
+    state_hidden: int = 64
+    n_obs_steps: int = 2
+    use_imagination: bool = True
+
+
+@dataclass(frozen=True)
+class VelocityNetConfig:
+    """The velocity network: an MLP over the flattened chunk, FiLM-conditioned per layer."""
+
+    hidden: int = 256
+    layers: int = 4
+    time_embed_dim: int = 64
+
+
+class PointCloudEncoder(nn.Module):
+    """Per-point MLP with LayerNorm + ReLU, max-pool over points, linear projection."""
+
+    def __init__(self, widths: tuple[int, ...], out_dim: int, in_dim: int = 3) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        for width in widths:
+            layers += [nn.Linear(in_dim, width), nn.LayerNorm(width), nn.ReLU()]
+            in_dim = width
+        self.point_mlp = nn.Sequential(*layers)
+        self.project = nn.Linear(in_dim, out_dim)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., N, 3) -> (..., out_dim)."""
+        return self.project(self.point_mlp(points[..., :3]).max(dim=-2).values)
+
+
+class ObservationEncoder(nn.Module):
+    """f_c from the last ``n_obs_steps`` observations: clouds (and imagined clouds) and state.
+
+    Input: a mapping with ``point_cloud`` (B, n_obs, N, 3), ``agent_pos`` (B, n_obs, D) and,
+    when ``use_imagination``, ``imagined_point_cloud`` (B, n_obs, N, 3).
+    """
+
+    def __init__(self, config: EncoderConfig, state_dim: int) -> None:
+        super().__init__()
+        self.config = config
+        self.cloud = PointCloudEncoder(config.point_widths, config.embed_dim)
+        self.imagined = PointCloudEncoder(config.point_widths, config.embed_dim) if config.use_imagination else None
+        self.state = nn.Sequential(
+            nn.Linear(state_dim, config.state_hidden), nn.ReLU(), nn.Linear(config.state_hidden, config.embed_dim)
+        )
+        modalities = 3 if config.use_imagination else 2
+        self.out_dim = config.n_obs_steps * modalities * config.embed_dim
+
+    def forward(self, observation: dict[str, torch.Tensor]) -> torch.Tensor:
+        parts = [self.cloud(observation["point_cloud"]), self.state(observation["agent_pos"])]
+        if self.imagined is not None:
+            parts.append(self.imagined(observation["imagined_point_cloud"]))
+        return torch.cat(parts, dim=-1).flatten(1)
+
+
+def time_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
+    """Sinusoidal embedding (B, dim) of times (B,) in [0, 1] (scaled by 1000 as in DDPM)."""
+    half = dim // 2
+    frequencies = torch.exp(-math.log(10000.0) * torch.arange(half, device=t.device, dtype=torch.float32) / half)
+    angles = 1000.0 * t.float()[:, None] * frequencies[None]
+    return torch.cat([angles.sin(), angles.cos()], dim=-1)
+
+
+class VelocityNet(nn.Module):
+    """u(z, r, t | c): residual MLP over the flattened action chunk, FiLM from [c, emb(t), emb(t - r)]."""
+
+    def __init__(self, config: VelocityNetConfig, horizon: int, action_dim: int, cond_dim: int) -> None:
+        super().__init__()
+        self.config, self.horizon, self.action_dim = config, horizon, action_dim
+        self.null_condition = nn.Parameter(torch.zeros(cond_dim))
+        context_dim = cond_dim + 2 * config.time_embed_dim
+        self.input = nn.Linear(horizon * action_dim, config.hidden)
+        self.blocks = nn.ModuleList(
+            nn.Sequential(nn.LayerNorm(config.hidden), nn.Linear(config.hidden, config.hidden), nn.SiLU(),
+                          nn.Linear(config.hidden, config.hidden))
+            for _ in range(config.layers)
+        )
+        self.films = nn.ModuleList(nn.Linear(context_dim, 2 * config.hidden) for _ in range(config.layers))
+        self.output = nn.Linear(config.hidden, horizon * action_dim)
+        nn.init.zeros_(self.output.weight)
+        nn.init.zeros_(self.output.bias)
+
+    def forward(
+        self, z: torch.Tensor, r: torch.Tensor, t: torch.Tensor, cond: torch.Tensor, drop: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """z (B, T, A), r and t (B,), cond (B, C), drop (B,) bool -> (B, T, A)."""
+        if drop is not None:
+            cond = torch.where(drop[:, None], self.null_condition.expand_as(cond), cond)
+        dim = self.config.time_embed_dim
+        context = torch.cat([cond, time_embedding(t, dim), time_embedding(t - r, dim)], dim=-1)
+        hidden = self.input(z.flatten(1))
+        for block, film in zip(self.blocks, self.films, strict=True):
+            scale, shift = film(context).chunk(2, dim=-1)
+            hidden = hidden + block(hidden) * (1 + scale) + shift
+        return self.output(hidden).reshape(-1, self.horizon, self.action_dim)
