@@ -96,7 +96,7 @@ def cmd_train_wm(args: argparse.Namespace) -> None:
     if history:
         last = history[-1]
         print(f"held-out full-grid IoU {last.full_iou:.3f} (persistence {last.persistence_full_iou:.3f}), "
-              f"dynamic IoU {last.dynamic_iou:.3f}, over {last.transitions} transitions, threshold 0.5")
+              f"dynamic IoU {last.dynamic_iou:.3f}, over {last.transitions} transitions, threshold {last.threshold}")
 
 
 def cmd_viz_imagine(args: argparse.Namespace) -> None:

@@ -28,21 +28,29 @@ def normalized_centres(indices: torch.Tensor, resolution: tuple[int, int, int]) 
     return (indices.float() + 0.5) / torch.tensor(resolution, dtype=torch.float32) * 2.0 - 1.0
 
 
+def logit(probability: float) -> float:
+    return float(np.log(probability / (1 - probability)))
+
+
 @torch.no_grad()
+def predict_logits(
+    model: TriplaneWorldModel, current: torch.Tensor, actions: torch.Tensor, chunk: int = 1 << 16
+) -> torch.Tensor:
+    """Occupancy logits of every voxel at t + H: (B, X, Y, Z)."""
+    resolution = model.config.resolution
+    features = model.encode(current, actions)
+    queries = normalized_centres(all_voxel_indices(resolution), resolution)
+    batch = current.shape[0]
+    logits = [model.decode(features, part.unsqueeze(0).expand(batch, -1, -1)) for part in queries.split(chunk)]
+    return torch.cat(logits, dim=1).reshape(current.shape[0], *resolution)
+
+
 def predict_grid(
     model: TriplaneWorldModel, current: torch.Tensor, actions: torch.Tensor, threshold: float = 0.5,
     chunk: int = 1 << 16,
 ) -> torch.Tensor:
     """Imagined occupancy of every voxel: (B, X, Y, Z) bool, probability > ``threshold``."""
-    resolution = model.config.resolution
-    features = model.encode(current, actions)
-    queries = normalized_centres(all_voxel_indices(resolution), resolution)
-    logit_threshold = float(np.log(threshold / (1 - threshold)))
-    occupied = []
-    for part in queries.split(chunk):
-        logits = model.decode(features, part.unsqueeze(0).expand(current.shape[0], -1, -1))
-        occupied.append(logits > logit_threshold)
-    return torch.cat(occupied, dim=1).reshape(current.shape[0], *resolution)
+    return predict_logits(model, current, actions, chunk) > logit(threshold)
 
 
 class Imaginer:
@@ -51,7 +59,8 @@ class Imaginer:
     Only voxels within ``band`` voxels of the current occupancy are decoded (motion over H
     control steps is bounded), which keeps decoding cheap enough for every control step.
     When the model predicts no occupied voxel there, the most likely ones are kept (as many
-    as are occupied now), so the output always holds real candidate positions.
+    as are occupied now), so the output always holds real candidate positions. The
+    occupancy threshold defaults to the one calibrated on training data during training.
 
     Example:
         >>> imaginer = Imaginer.from_checkpoint("runs/hammer/wm.pt")
@@ -66,7 +75,7 @@ class Imaginer:
         self.grid = grid
         self.num_points = num_points
         self.band = band
-        self.logit_threshold = float(np.log(threshold / (1 - threshold)))
+        self.logit_threshold = logit(threshold)
         self.rng = np.random.default_rng(seed)
 
     @property
@@ -83,6 +92,7 @@ class Imaginer:
             raise CheckpointError(f"{path} does not match this version's world model: {error}") from error
         box = CropBox(**payload["grid"]["box"])
         grid = VoxelGrid(box, tuple(payload["grid"]["resolution"]))
+        kwargs.setdefault("threshold", payload.get("threshold", 0.5))
         return cls(model, grid, num_points or payload["num_points"], **kwargs)
 
     def check_compatible(self, crop_box: CropBox, action_dim: int) -> None:

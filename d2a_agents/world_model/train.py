@@ -20,7 +20,7 @@ from tqdm import tqdm
 from collectors.storage import DemoDataset
 from d2a_agents.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from d2a_agents.world_model.data import WorldModelTransitions
-from d2a_agents.world_model.imagine import CHECKPOINT_KIND, predict_grid
+from d2a_agents.world_model.imagine import CHECKPOINT_KIND, logit, predict_grid, predict_logits
 from d2a_agents.world_model.losses import balanced_queries, focal_loss
 from d2a_agents.world_model.metrics import IoUAccumulator
 from d2a_agents.world_model.triplane import CPU_PRESET, TriplaneWorldModel, WorldModelConfig
@@ -61,6 +61,7 @@ class ValidationResult:
     dynamic_iou: float
     persistence_full_iou: float
     transitions: int
+    threshold: float = 0.5
 
 
 def split_episodes(dataset: DemoDataset, holdout_fraction: float) -> tuple[list[int], list[int]]:
@@ -90,18 +91,42 @@ def dataset_crop_box(dataset: DemoDataset) -> CropBox:
     return CropBox.from_any(box) if box is not None else d2a_envs.SUITE_DEFAULTS[suites.pop()].crop_box
 
 
+CANDIDATE_THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9)
+
+
 @torch.no_grad()
-def validate(model: TriplaneWorldModel, transitions: WorldModelTransitions, stride: int, step: int) -> ValidationResult:
-    """Full-grid and dynamic IoU (threshold 0.5) over every ``stride``-th held-out transition."""
+def validate(
+    model: TriplaneWorldModel, transitions: WorldModelTransitions, stride: int, step: int, threshold: float
+) -> ValidationResult:
+    """Full-grid and dynamic IoU at ``threshold`` over every ``stride``-th held-out transition."""
     model.eval()
     ours, persistence = IoUAccumulator(), IoUAccumulator()
     indices = torch.arange(0, len(transitions), stride)
     for chunk in indices.split(8):
         batch = transitions.get(chunk)
-        ours.update(batch.current, predict_grid(model, batch.current, batch.actions), batch.target)
+        ours.update(batch.current, predict_grid(model, batch.current, batch.actions, threshold), batch.target)
         persistence.update(batch.current, batch.current, batch.target)
     model.train()
-    return ValidationResult(step, ours.full_iou, ours.dynamic_iou, persistence.full_iou, len(indices))
+    return ValidationResult(step, ours.full_iou, ours.dynamic_iou, persistence.full_iou, len(indices), threshold)
+
+
+@torch.no_grad()
+def calibrate_threshold(model: TriplaneWorldModel, transitions: WorldModelTransitions, samples: int = 64) -> float:
+    """The occupancy threshold with the best full-grid IoU on TRAINING transitions.
+
+    Balanced queries show the decoder far more occupied voxels than the grid holds, so its
+    probabilities run high and 0.5 over-predicts; the threshold is chosen on training data,
+    never on the held-out episodes it is then evaluated on.
+    """
+    model.eval()
+    accumulators = {threshold: IoUAccumulator() for threshold in CANDIDATE_THRESHOLDS}
+    for chunk in torch.linspace(0, len(transitions) - 1, samples).long().split(8):
+        batch = transitions.get(chunk)
+        logits = predict_logits(model, batch.current, batch.actions)
+        for threshold, accumulator in accumulators.items():
+            accumulator.update(batch.current, logits > logit(threshold), batch.target)
+    model.train()
+    return max(accumulators, key=lambda threshold: accumulators[threshold].full_iou)
 
 
 def _payload(config: TrainWorldModelConfig, dataset: DemoDataset, grid: VoxelGrid) -> dict:
@@ -149,6 +174,7 @@ def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel
         save_checkpoint(out, CHECKPOINT_KIND, {
             **payload, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
             "generator": generator.get_state(), "step": step, "history": [dataclasses.asdict(v) for v in history],
+            "threshold": history[-1].threshold if history else 0.5,
         })
 
     resolution = torch.tensor(model_config.resolution, dtype=torch.float32)
@@ -167,15 +193,17 @@ def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel
         bar.set_postfix(loss=f"{loss.item():.4f}")
         done = step + 1
         if done % config.validate_every == 0 or done == config.steps:
-            result = validate(model, held_out, config.validation_stride, done)
+            threshold = calibrate_threshold(model, train)
+            result = validate(model, held_out, config.validation_stride, done, threshold)
             history.append(result)
             bar.write(f"step {done}: held-out IoU {result.full_iou:.3f} "
-                      f"(persistence {result.persistence_full_iou:.3f}), dynamic IoU {result.dynamic_iou:.3f}")
+                      f"(persistence {result.persistence_full_iou:.3f}), dynamic IoU {result.dynamic_iou:.3f}, "
+                      f"threshold {threshold} (chosen on training data)")
         if done % config.checkpoint_every == 0 or done == config.steps:
             checkpoint(done)
     bar.close()
     if start >= config.steps and not history:
-        history.append(validate(model, held_out, config.validation_stride, start))
+        history.append(validate(model, held_out, config.validation_stride, start, calibrate_threshold(model, train)))
     if config.progress:
         print(f"trained {config.steps - start} steps in {time.perf_counter() - started:.0f} s -> {out}")
     return model, history
