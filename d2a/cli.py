@@ -108,6 +108,15 @@ def cmd_viz_imagine(args: argparse.Namespace) -> None:
     print(f"wrote {path}")
 
 
+def cmd_bench_wm(args: argparse.Namespace) -> None:
+    from benchmarks.world_model import WorldModelBenchConfig, run
+
+    base = WorldModelBenchConfig()
+    model = dataclasses.replace(base.model, resolution=tuple(args.resolution)) if args.resolution else base.model
+    run(dataclasses.replace(base, tasks=tuple(args.task or base.tasks), steps=args.steps, workdir=args.workdir,
+                            model=model))
+
+
 def cmd_demo(args: argparse.Namespace) -> None:
     """A short point-cloud episode: reset, random steps with a progress bar, a picture."""
     import gymnasium as gym
@@ -196,6 +205,13 @@ def build_parser() -> argparse.ArgumentParser:
     data_info = data.add_parser("info", help="episodes, lengths, success, point counts, size on disk")
     data_info.add_argument("dir")
     data_info.set_defaults(func=cmd_data_info)
+
+    bench_wm = bench.add_parser("wm", help="world model IoU vs ablations and persistence (Table II)")
+    bench_wm.add_argument("--task", action="append", default=None, help="default: hammer assembly push basketball")
+    bench_wm.add_argument("--steps", type=int, default=300)
+    bench_wm.add_argument("--resolution", type=int, nargs=3, default=None, metavar=("X", "Y", "Z"))
+    bench_wm.add_argument("--workdir", default="outputs/bench_wm")
+    bench_wm.set_defaults(func=cmd_bench_wm)
 
     demo = commands.add_parser("demo", help="the end-to-end demo on an embedded default")
     _add_env_options(demo)
