@@ -108,6 +108,51 @@ def cmd_viz_imagine(args: argparse.Namespace) -> None:
     print(f"wrote {path}")
 
 
+def cmd_train_policy(args: argparse.Namespace) -> None:
+    from d2a_agents.policy.agent import PolicyConfig
+    from d2a_agents.policy.train import TrainPolicyConfig, train_policy
+
+    policy = PolicyConfig(algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
+                          n_action_steps=args.n_action_steps, num_points=args.num_points)
+    config = TrainPolicyConfig(
+        data=args.data, out=args.out, policy=policy, world_model=args.world_model, steps=args.steps,
+        batch_size=args.batch_size, learning_rate=args.lr, eval_every=args.eval_every,
+        eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
+    )
+    _, history = train_policy(config)
+    for point in history:
+        print(f"step {point.step}: success {point.success_rate:.0%} over {point.episodes} episodes")
+
+
+def cmd_eval(args: argparse.Namespace) -> None:
+    import functools
+
+    import d2a_envs
+    from collectors.evaluation import evaluate
+
+    if args.policy == "expert":
+        from collectors.experts import ScriptedExpert
+
+        factory, env_kwargs = functools.partial(ScriptedExpert, args.task), _env_kwargs(args)
+    else:
+        from d2a_agents.policy.train import eval_env_kwargs, load_policy, load_torchrl_policy
+
+        _, payload = load_policy(args.policy)
+        task = d2a_envs.get_task(args.task).name
+        if task not in payload["env_kwargs"]:
+            raise ValueError(f"{args.policy} was trained on {payload['tasks']}, not on {task}")
+        factory, env_kwargs = functools.partial(load_torchrl_policy, args.policy), eval_env_kwargs(payload, task)
+    result = evaluate(factory, args.task, args.episodes, args.seed, env_kwargs=env_kwargs, workers=args.workers)
+    print(result.summary())
+
+
+def cmd_bench_experts(args: argparse.Namespace) -> None:
+    from benchmarks.experts import ExpertBenchConfig, run
+
+    base = ExpertBenchConfig()
+    run(dataclasses.replace(base, tasks=tuple(args.task or base.tasks), episodes=args.episodes, workers=args.workers))
+
+
 def cmd_bench_wm(args: argparse.Namespace) -> None:
     from benchmarks.world_model import WorldModelBenchConfig, run
 
@@ -201,10 +246,42 @@ def build_parser() -> argparse.ArgumentParser:
     train_wm.add_argument("--seed", type=int, default=0)
     train_wm.set_defaults(func=cmd_train_wm)
 
+    train_policy = commands.add_parser("train-policy", help="train a policy (d2a, mp1, dp3, ablations)")
+    train_policy.add_argument("--data", required=True)
+    train_policy.add_argument("--out", required=True, help="run directory; an existing run is resumed")
+    train_policy.add_argument("--algo", choices=("d2a", "d2a-no-cfg", "d2a-no-imagination", "mp1", "dp3"),
+                              default="d2a")
+    train_policy.add_argument("--world-model", default=None, help="checkpoint of d2a train-wm (d2a variants)")
+    train_policy.add_argument("--steps", type=int, default=3000)
+    train_policy.add_argument("--batch-size", type=int, default=64)
+    train_policy.add_argument("--lr", type=float, default=1e-4)
+    train_policy.add_argument("--horizon", type=int, default=4)
+    train_policy.add_argument("--n-obs-steps", type=int, default=2)
+    train_policy.add_argument("--n-action-steps", type=int, default=4)
+    train_policy.add_argument("--num-points", type=int, default=512, help="points per cloud fed to the encoder")
+    train_policy.add_argument("--eval-every", type=int, default=0, help="0: evaluate at the end only")
+    train_policy.add_argument("--eval-episodes", type=int, default=20)
+    train_policy.add_argument("--workers", type=int, default=1)
+    train_policy.add_argument("--seed", type=int, default=0)
+    train_policy.set_defaults(func=cmd_train_policy)
+
+    evaluation = commands.add_parser("eval", help="evaluate a policy checkpoint (or the scripted expert)")
+    _add_env_options(evaluation)
+    evaluation.add_argument("--policy", required=True, help="policy.pt of d2a train-policy, or 'expert'")
+    evaluation.add_argument("--episodes", type=int, default=100)
+    evaluation.add_argument("--workers", type=int, default=2)
+    evaluation.set_defaults(func=cmd_eval)
+
     data = commands.add_parser("data", help="data sets").add_subparsers(dest="what", required=True)
     data_info = data.add_parser("info", help="episodes, lengths, success, point counts, size on disk")
     data_info.add_argument("dir")
     data_info.set_defaults(func=cmd_data_info)
+
+    bench_experts = bench.add_parser("experts", help="scripted-expert success on Meta-World, parallel speed-up")
+    bench_experts.add_argument("--task", action="append", default=None, help="default: all 50 Meta-World tasks")
+    bench_experts.add_argument("--episodes", type=int, default=5)
+    bench_experts.add_argument("--workers", type=int, default=2)
+    bench_experts.set_defaults(func=cmd_bench_experts)
 
     bench_wm = bench.add_parser("wm", help="world model IoU vs ablations and persistence (Table II)")
     bench_wm.add_argument("--task", action="append", default=None, help="default: hammer assembly push basketball")

@@ -1,0 +1,195 @@
+"""Scripted-expert success on every Meta-World task, through the D2A env and ``evaluate``.
+
+The experts read the simulator state, so the point clouds are made small (64 px, N = 256):
+they cost time and the expert ignores them. For every task below 100 %, the failing
+episodes are run again with a longer limit (same seeds, so the same layouts and, the
+experts being deterministic, the same first 200 steps) and one that still fails is looked
+at: how close the hand got to the object and the object to the goal. Last, the same
+episodes are evaluated in one process and with ``workers`` processes, side by side.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import statistics
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from tqdm import tqdm
+
+import d2a_envs
+from collectors.envs import STATE_KEY, make_torchrl_env
+from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
+from collectors.experts import ScriptedExpert
+from d2a_envs.tasks import DIFFICULTIES
+
+# Meta-World v3 state layout: hand xyz, gripper opening, first object xyz + quaternion, ...,
+# goal xyz in the last three entries.
+_HAND, _OBJECT, _GOAL = slice(0, 3), slice(4, 7), slice(36, 39)
+_REACHED = 0.05  # metres: the hand "reaches" the object within this distance
+
+
+@dataclass(frozen=True)
+class ExpertBenchConfig:
+    """What ``d2a bench experts`` measures.
+
+    Attributes:
+        tasks: task names (default: the 50 Meta-World tasks).
+        episodes: episodes per task (seeds ``seed .. seed + episodes - 1``).
+        seed: seed of the first episode.
+        workers: worker processes of each evaluation.
+        env_kwargs: point-cloud settings; small, since the expert reads the state.
+        max_steps: episode length of the table (DP3/MP1: 200).
+        late_max_steps: longer limit used to see whether failures are only late successes.
+        speedup_task: task of the one-process vs. ``workers``-process timing.
+        speedup_episodes: episode counts of that timing (the worker start-up is amortised
+            over more episodes).
+        progress: progress bar over tasks.
+    """
+
+    tasks: tuple[str, ...] = tuple(spec.name for spec in d2a_envs.list_tasks(suite="metaworld"))
+    episodes: int = 5
+    seed: int = 0
+    workers: int = 2
+    env_kwargs: dict[str, Any] = field(default_factory=lambda: {"image_size": 64, "num_points": 256})
+    max_steps: int = d2a_envs.DEFAULT_MAX_EPISODE_STEPS
+    late_max_steps: int = 500
+    speedup_task: str = "hammer"
+    speedup_episodes: tuple[int, ...] = (5, 20)
+    progress: bool = True
+
+
+def _expert(task: str) -> functools.partial:
+    return functools.partial(ScriptedExpert, task)
+
+
+def _distances(task: str, seed: int, config: ExpertBenchConfig) -> str:
+    """Roll out episode ``seed`` for ``late_max_steps`` in this process and describe how
+    close the hand came to the object and the object to the goal."""
+    env = make_torchrl_env(task, {**config.env_kwargs, "max_episode_steps": config.late_max_steps}, seed=seed)
+    with torch.no_grad():
+        rollout = env.rollout(config.late_max_steps, ScriptedExpert(task))
+    env.close()
+    assert int(rollout["episode_seed"][0]) == seed
+    state = torch.cat([rollout[STATE_KEY][:1], rollout["next", STATE_KEY]])
+    hand, obj, goal = state[:, _HAND], state[:, _OBJECT], state[:, _GOAL]
+    if bool((obj == 0).all()):
+        return f"hand comes within {100 * float((hand - goal).norm(dim=-1).min()):.1f} cm of the goal"
+    reach = float((hand - obj).norm(dim=-1).min())
+    to_goal = float((obj - goal).norm(dim=-1).min())
+    start = float((obj[0] - goal[0]).norm())
+    if reach > _REACHED:
+        return f"hand never within {100 * _REACHED:.0f} cm of the object (closest {100 * reach:.1f} cm)"
+    return (
+        f"hand reaches the object ({100 * reach:.1f} cm) but the object gets no closer than "
+        f"{100 * to_goal:.1f} cm to the goal (from {100 * start:.1f} cm)"
+    )
+
+
+def failure_reason(result: EvaluationResult, config: ExpertBenchConfig) -> str:
+    """One line on why the expert failed: late successes, else the distances of one failure."""
+    failed = [seed for seed, success in zip(result.seeds, result.successes, strict=True) if not success]
+    late = evaluate(
+        _expert(result.task), result.task, len(result.seeds), result.seeds[0], config.env_kwargs,
+        workers=config.workers, max_steps=config.late_max_steps, progress=False,
+    )
+    late_steps = dict(zip(late.seeds, late.success_steps, strict=True))
+    parts = []
+    succeeded_late = {seed: late_steps[seed] for seed in failed if late_steps[seed] is not None}
+    if succeeded_late:
+        steps = ", ".join(f"seed {seed} at step {step}" for seed, step in succeeded_late.items())
+        parts.append(f"late success within {config.late_max_steps} steps ({steps})")
+    never = [seed for seed in failed if late_steps[seed] is None]
+    if never:
+        parts.append(
+            f"seed(s) {', '.join(map(str, never))} fail even in {config.late_max_steps} steps; "
+            f"seed {never[0]}: {_distances(result.task, never[0], config)}"
+        )
+    return "; ".join(parts)
+
+
+def speedup(config: ExpertBenchConfig) -> list[dict[str, object]]:
+    """Time the same episodes of ``speedup_task`` in one process and in ``workers``."""
+    rows = []
+    for episodes in config.speedup_episodes:
+        kwargs = dict(env_kwargs=config.env_kwargs, max_steps=config.max_steps, progress=False)
+        single = evaluate(_expert(config.speedup_task), config.speedup_task, episodes, config.seed, workers=1, **kwargs)
+        parallel = evaluate(
+            _expert(config.speedup_task), config.speedup_task, episodes, config.seed, workers=config.workers, **kwargs
+        )
+        same = single.successes == parallel.successes and single.returns == parallel.returns
+        rows.append(dict(episodes=episodes, single=single.seconds, parallel=parallel.seconds, same=same))
+    return rows
+
+
+def run(config: ExpertBenchConfig = ExpertBenchConfig()) -> list[dict[str, object]]:
+    """Evaluate the expert on every task; prints markdown tables and returns the rows."""
+    rows: list[dict[str, object]] = []
+    results: list[EvaluationResult] = []
+    for task in tqdm(config.tasks, desc="tasks", disable=not config.progress):
+        result = evaluate(
+            _expert(task), task, config.episodes, config.seed, config.env_kwargs,
+            workers=config.workers, max_steps=config.max_steps, progress=False,
+        )
+        results.append(result)
+        steps = [step for step in result.success_steps if step is not None]
+        rows.append(dict(
+            task=result.task, difficulty=d2a_envs.get_task(task).difficulty or "-",
+            successes=sum(result.successes), episodes=result.episodes, rate=result.success_rate,
+            mean_return=result.mean_return, median_step=statistics.median(steps) if steps else None,
+            seconds=result.seconds,
+        ))
+
+    last_seed = config.seed + config.episodes - 1
+    print(
+        f"\nScripted experts, {config.episodes} episodes per task (seeds {config.seed}..{last_seed}),"
+        f" {config.max_steps} steps, env {config.env_kwargs}, {config.workers} workers\n"
+    )
+    print("| task | difficulty | success | mean return | median first-success step |")
+    print("| --- | --- | --- | --- | --- |")
+    for row in rows:
+        step = "-" if row["median_step"] is None else f"{row['median_step']:g}"
+        print(
+            f"| {row['task']} | {row['difficulty']} | {row['successes']}/{row['episodes']} = {100 * row['rate']:.0f} % "
+            f"| {row['mean_return']:.1f} | {step} |"
+        )
+    all_outcomes = [success for result in results for success in result.successes]
+    mean, low, high = honest_protocol(all_outcomes)
+    print(
+        f"\nall tasks: {sum(all_outcomes)}/{len(all_outcomes)} episodes = {100 * mean:.1f} % "
+        f"(95 % Wilson {100 * low:.1f}-{100 * high:.1f} %); "
+        f"evaluation time {sum(row['seconds'] for row in rows):.0f} s"
+    )
+    for level in DIFFICULTIES:
+        outcomes = [s for row, r in zip(rows, results, strict=True) if row["difficulty"] == level for s in r.successes]
+        if outcomes:
+            print(f"  {level}: {100 * sum(outcomes) / len(outcomes):.1f} % of {len(outcomes)} episodes")
+
+    below = [result for result in results if result.success_rate < 1.0]
+    print(f"\nTasks below 100 % ({len(below)}):")
+    for result in below:
+        print(f"- {result.task} ({sum(result.successes)}/{result.episodes}): {failure_reason(result, config)}")
+    if not below:
+        print("- none")
+
+    load = os.getloadavg()[0]
+    timing = speedup(config)
+    print(
+        f"\nParallel evaluation, {config.speedup_task}, {config.max_steps} steps per episode (wall time, worker "
+        f"start-up and shutdown included; measured one after the other in this run; {os.cpu_count()} cores, "
+        f"1-min load average {load:.1f} before, {os.getloadavg()[0]:.1f} after)\n"
+    )
+    print(f"| episodes | 1 process (s) | {config.workers} processes (s) | speed-up | identical results |")
+    print("| --- | --- | --- | --- | --- |")
+    for row in timing:
+        print(
+            f"| {row['episodes']} | {row['single']:.1f} | {row['parallel']:.1f} | "
+            f"{row['single'] / row['parallel']:.2f}x | {row['same']} |"
+        )
+    return rows
+
+
+if __name__ == "__main__":
+    run()

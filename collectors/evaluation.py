@@ -1,0 +1,326 @@
+"""Evaluate a policy on a D2A task through TorchRL, and the two ways of reporting the result.
+
+``evaluate`` runs whole episodes and returns per-episode success and return. Episode k of an
+evaluation with seed s is reset with seed s + k (:class:`~d2a_envs.wrappers.SeedEachReset`),
+so the set of episodes does not depend on how many worker processes ran them.
+
+Reporting:
+
+* :func:`paper_protocol`: the number DP3 and MP1 publish, the mean of the 5 best evaluation
+  success rates seen during training (each evaluation: 20 episodes). It picks the best
+  checkpoints after the fact, so it is biased upwards.
+* :func:`honest_protocol`: the final checkpoint only, on many episodes (>= 100 recommended),
+  with a 95 % Wilson score interval.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.envs import EnvBase, InitTracker
+from torchrl.envs.utils import ExplorationType
+from tqdm import tqdm
+
+import d2a_envs
+from collectors.envs import make_torchrl_env
+
+# Two-sided 95 % normal quantile, Phi^-1(0.975).
+Z_95 = 1.959963984540054
+
+
+@dataclass
+class EvaluationResult:
+    """Outcome of :func:`evaluate`, one entry per episode, in episode-seed order.
+
+    Attributes:
+        task: short task name.
+        successes: whether ``success`` was true at any step of the episode (DP3/MP1 convention).
+        returns: sum of the episode's rewards.
+        seeds: the reset seed of each episode (seed, seed + 1, ...).
+        success_steps: 1-based step at which ``success`` first became true, ``None`` if never.
+        lengths: steps in each episode.
+        workers: worker processes used (1: in this process).
+        seconds: wall time of the whole evaluation, worker start-up included.
+    """
+
+    task: str
+    successes: list[bool]
+    returns: list[float]
+    seeds: list[int]
+    success_steps: list[int | None] = field(default_factory=list)
+    lengths: list[int] = field(default_factory=list)
+    workers: int = 1
+    seconds: float = 0.0
+
+    @property
+    def episodes(self) -> int:
+        return len(self.successes)
+
+    @property
+    def success_rate(self) -> float:
+        return sum(self.successes) / len(self.successes) if self.successes else float("nan")
+
+    @property
+    def mean_return(self) -> float:
+        return sum(self.returns) / len(self.returns) if self.returns else float("nan")
+
+    def summary(self) -> str:
+        """One line: success rate with its 95 % Wilson interval, mean return, seeds, time."""
+        _, low, high = honest_protocol(self.successes)
+        seeds = f"{self.seeds[0]}..{self.seeds[-1]}" if len(self.seeds) > 1 else f"{self.seeds[0]}"
+        return (
+            f"{self.task}: success {sum(self.successes)}/{self.episodes} = {100 * self.success_rate:.1f} % "
+            f"(95 % Wilson {100 * low:.1f}-{100 * high:.1f} %), mean return {self.mean_return:.1f}, "
+            f"seeds {seeds}, {self.workers} worker(s), {self.seconds:.1f} s"
+        )
+
+
+def _make_eval_env(task: str, env_kwargs: dict[str, Any], seed: int) -> EnvBase:
+    """The env of one worker: its episodes use seed, seed + 1, ...; also seeds torch's global
+    generator (stochastic policies sample from it) and adds ``is_init`` (:class:`InitTracker`).
+
+    Module-level so that spawned workers can unpickle it.
+    """
+    torch.manual_seed(seed)
+    env = make_torchrl_env(task, env_kwargs, seed=seed)
+    env.append_transform(InitTracker())
+    return env
+
+
+@dataclass
+class _Episode:
+    """Running totals of one episode while its steps arrive."""
+
+    reward: float = 0.0
+    length: int = 0
+    success_step: int | None = None
+
+
+class _EpisodeTally:
+    """Turns collector batches into per-episode results, keeping only the wanted episode seeds.
+
+    Each worker's rows are read on their own and episodes are told apart by ``episode_seed``,
+    so neither the order in which workers deliver nor the extra episodes a worker runs past
+    its share change the result.
+    """
+
+    def __init__(self, wanted: Sequence[Sequence[int]]) -> None:
+        self.wanted = [set(seeds) for seeds in wanted]  # per worker
+        self.running: list[dict[int, _Episode]] = [{} for _ in wanted]
+        self.finished: dict[int, _Episode] = {}
+
+    @property
+    def complete(self) -> bool:
+        return all(seeds <= self.finished.keys() for seeds in self.wanted)
+
+    def add(self, batch: TensorDictBase) -> int:
+        """Read a ``[T]`` (one worker) or ``[workers, T]`` batch; returns episodes finished."""
+        rows = batch.unsqueeze(0) if batch.ndim == 1 else batch
+        before = len(self.finished)
+        for worker, row in enumerate(rows.unbind(0)):
+            self._add_row(worker, row)
+        return len(self.finished) - before
+
+    def _add_row(self, worker: int, row: TensorDictBase) -> None:
+        seeds = row.get("episode_seed").reshape(-1)
+        rewards = row.get(("next", "reward")).reshape(-1).double()
+        successes = row.get(("next", "success")).reshape(-1)
+        dones = row.get(("next", "done")).reshape(-1)
+        start = 0
+        for seed, count in zip(*torch.unique_consecutive(seeds, return_counts=True), strict=True):
+            seed, stop = int(seed), start + int(count)
+            if seed > max(self.wanted[worker]) and not self.wanted[worker] <= self.finished.keys():
+                missing = sorted(self.wanted[worker] - self.finished.keys())
+                raise RuntimeError(f"worker {worker} reached episode seed {seed} without finishing {missing}")
+            if seed in self.wanted[worker] and seed not in self.finished:
+                episode = self.running[worker].setdefault(seed, _Episode())
+                hits = successes[start:stop].nonzero()
+                if episode.success_step is None and len(hits):
+                    episode.success_step = episode.length + int(hits[0]) + 1
+                episode.reward += float(rewards[start:stop].sum())
+                episode.length += stop - start
+                if dones[stop - 1]:
+                    self.finished[seed] = self.running[worker].pop(seed)
+            start = stop
+
+
+def _split(seeds: list[int], workers: int) -> list[list[int]]:
+    """Contiguous blocks of seeds, as even as possible: worker i starts at its block's first."""
+    size, extra = divmod(len(seeds), workers)
+    blocks, start = [], 0
+    for worker in range(workers):
+        stop = start + size + (worker < extra)
+        blocks.append(seeds[start:stop])
+        start = stop
+    return blocks
+
+
+def evaluate(
+    policy_factory: Callable[[], Callable[[TensorDictBase], TensorDictBase]],
+    task: str,
+    episodes: int,
+    seed: int,
+    env_kwargs: dict[str, Any] | None = None,
+    workers: int = 1,
+    max_steps: int = d2a_envs.DEFAULT_MAX_EPISODE_STEPS,
+    progress: bool = True,
+) -> EvaluationResult:
+    """Run ``episodes`` complete episodes of ``task`` with a fresh policy from ``policy_factory``.
+
+    Args:
+        policy_factory: zero-argument, picklable callable returning a TensorDict policy that
+            reads the env's keys and writes ``action``, e.g. ``functools.partial(ScriptedExpert,
+            "hammer")``. Every worker builds its own policy.
+        task: task name or env id (``hammer``, ``D2A-MetaWorld-Hammer-v0``).
+        episodes: number of episodes; episode k is reset with seed ``seed + k``.
+        seed: seed of the first episode.
+        env_kwargs: point-cloud settings passed to ``gym.make`` (``image_size``, ``num_points``, ...).
+        workers: 1 runs a :class:`~torchrl.collectors.Collector` in this process; more runs a
+            :class:`~torchrl.collectors.MultiSyncCollector` with that many spawned processes
+            (capped at ``episodes``), worker i taking the i-th contiguous block of seeds.
+        max_steps: steps per episode (the env's time limit; DP3/MP1: 200).
+        progress: show a progress bar over episodes.
+
+    Reproducibility: each episode's layout (and point-cloud sampling) depends on its seed
+    only, so for a deterministic policy (the scripted experts, a network in eval mode with
+    deterministic sampling) the results are identical for any ``workers``. torch's global
+    generator is seeded in each worker with the first seed of its block (in this process
+    under :func:`torch.random.fork_rng`, so the caller's generator is left alone): a policy
+    that samples from it (diffusion / flow noise) gets identical results for the same
+    ``(seed, workers)``, but different ones when ``workers`` changes, unless it reseeds itself
+    per episode from ``episode_seed``. numpy's global generator is not seeded.
+
+    Stateful policies (e.g. an observation history): the policy sees every step of an
+    episode in order, in the process that built it, and episodes follow one another; it
+    should clear its state on the first step of an episode, which carries ``is_init = True``
+    (the env has an :class:`~torchrl.envs.InitTracker`); ``episode_seed`` changes there too.
+    TorchRL's collector also calls the policy once when it is built, on the first reset's
+    tensordict (``is_init`` true), to find its output keys: count episodes with ``is_init``,
+    not calls.
+
+    Returns:
+        An :class:`EvaluationResult` in episode-seed order.
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be positive, got {episodes}")
+    if workers < 1:
+        raise ValueError(f"workers must be positive, got {workers}")
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be positive, got {max_steps}")
+    env_kwargs = dict(env_kwargs or {})
+    if "max_episode_steps" in env_kwargs:
+        raise ValueError("pass the episode length as max_steps, not as env_kwargs['max_episode_steps']")
+    env_kwargs["max_episode_steps"] = max_steps
+    name = d2a_envs.get_task(task).name  # fails early on unknown names
+    seeds = list(range(seed, seed + episodes))
+    workers = min(workers, episodes)
+    blocks = _split(seeds, workers)
+    tally = _EpisodeTally(blocks)
+    bar = tqdm(total=episodes, desc=f"eval {name}", unit="ep", disable=not progress)
+    start = time.perf_counter()
+    threads = torch.get_num_threads()  # the multi-process collector lowers this process's count
+    try:
+        if workers == 1:
+            with torch.random.fork_rng(devices=[]):
+                env = _make_eval_env(name, env_kwargs, blocks[0][0])
+                collector = Collector(
+                    env, policy_factory=policy_factory, frames_per_batch=max_steps, total_frames=-1,
+                    exploration_type=ExplorationType.DETERMINISTIC, auto_register_policy_transforms=False,
+                )
+                _drain(collector, tally, bar)
+        else:
+            collector = MultiSyncCollector(
+                [partial(_make_eval_env, name, env_kwargs, block[0]) for block in blocks],
+                policy_factory=policy_factory, frames_per_batch=workers * max_steps, total_frames=-1,
+                cat_results="stack", exploration_type=ExplorationType.DETERMINISTIC,
+                auto_register_policy_transforms=False,
+            )
+            _drain(collector, tally, bar)
+    finally:
+        bar.close()
+        torch.set_num_threads(threads)
+    done = [tally.finished[s] for s in seeds]
+    return EvaluationResult(
+        task=name,
+        successes=[episode.success_step is not None for episode in done],
+        returns=[episode.reward for episode in done],
+        seeds=seeds,
+        success_steps=[episode.success_step for episode in done],
+        lengths=[episode.length for episode in done],
+        workers=workers,
+        seconds=time.perf_counter() - start,
+    )
+
+
+def _drain(collector: Collector | MultiSyncCollector, tally: _EpisodeTally, bar: tqdm) -> None:
+    """Feed batches to ``tally`` until every wanted episode is finished, then stop the workers."""
+    try:
+        for batch in collector:
+            bar.update(tally.add(batch))
+            if tally.complete:
+                break
+    finally:
+        collector.shutdown()
+
+
+def paper_protocol(evaluation_success_rates: Sequence[float], top_k: int = 5) -> float:
+    """The success rate DP3 and MP1 report for one training run: the mean of the ``top_k``
+    best evaluation success rates seen during training.
+
+    Each entry is one evaluation of a checkpoint (in the papers: 20 episodes, every fixed
+    number of epochs); the papers then average this number over 3 training seeds. With
+    fewer than ``top_k`` evaluations, all of them are averaged. The choice of the best
+    checkpoints uses the evaluation episodes themselves, so the number is optimistic; see
+    :func:`honest_protocol`.
+    """
+    rates = [float(rate) for rate in evaluation_success_rates]
+    if not rates:
+        raise ValueError("paper_protocol needs at least one evaluation success rate")
+    if top_k < 1:
+        raise ValueError(f"top_k must be positive, got {top_k}")
+    if any(not 0.0 <= rate <= 1.0 for rate in rates):
+        raise ValueError(f"success rates must lie in [0, 1], got {rates}")
+    best = sorted(rates, reverse=True)[:top_k]
+    return sum(best) / len(best)
+
+
+def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion: ``successes`` out of ``trials``.
+
+    centre = (p + z^2 / 2n) / (1 + z^2 / n),
+    half width = z / (1 + z^2 / n) * sqrt(p (1 - p) / n + z^2 / 4n^2).
+    """
+    if trials < 1:
+        raise ValueError(f"trials must be positive, got {trials}")
+    if not 0 <= successes <= trials:
+        raise ValueError(f"successes must lie in [0, {trials}], got {successes}")
+    n, p, z2 = trials, successes / trials, z * z
+    denominator = 1 + z2 / n
+    centre = (p + z2 / (2 * n)) / denominator
+    half = z / denominator * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n))
+    low = 0.0 if successes == 0 else max(0.0, centre - half)
+    high = 1.0 if successes == trials else min(1.0, centre + half)
+    return low, high
+
+
+def honest_protocol(successes: Sequence[bool]) -> tuple[float, float, float]:
+    """Success rate of the final checkpoint with its 95 % Wilson score interval.
+
+    ``successes`` are the per-episode outcomes of one evaluation of the last checkpoint
+    (e.g. :attr:`EvaluationResult.successes`); use >= 100 episodes: with 20 the interval
+    is about +-20 points wide. Returns ``(mean, low, high)``.
+    """
+    outcomes = [bool(success) for success in successes]
+    if not outcomes:
+        raise ValueError("honest_protocol needs at least one episode")
+    wins = sum(outcomes)
+    low, high = wilson_interval(wins, len(outcomes))
+    return wins / len(outcomes), low, high
