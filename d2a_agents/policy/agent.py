@@ -1,0 +1,188 @@
+"""The policy: observation window -> action chunk, one algorithm flag for every variant.
+
+Variants (``--algo``), all on the same encoders, network, data and evaluation:
+
+| algo | action expert | imagined cloud | adaptive CFG |
+| --- | --- | --- | --- |
+| ``d2a`` | MeanFlow, 1 step | yes | yes |
+| ``d2a-no-cfg`` | MeanFlow, 1 step | yes | no |
+| ``d2a-no-imagination`` | MeanFlow, 1 step | no | yes |
+| ``mp1`` | MeanFlow, 1 step | no | no |
+| ``dp3`` | diffusion, DDIM 10 steps | no | no |
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+
+from collectors.dataset import Normalizer
+from d2a_agents.policy.networks import EncoderConfig, ObservationEncoder, VelocityNet, VelocityNetConfig
+from d2a_envs.sampling import farthest_point_indices
+
+ALGORITHMS = ("d2a", "d2a-no-cfg", "d2a-no-imagination", "mp1", "dp3")
+IMAGINED_KEY = "imagined_point_cloud"
+
+
+def uses_imagination(algo: str) -> bool:
+    return algo in ("d2a", "d2a-no-cfg")
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """Architecture and action-chunking of a policy (defaults: MP1's horizon 4 / 2 / 4).
+
+    ``num_points`` < the data's cloud size subsamples clouds by FPS before the encoder (the
+    CPU preset gives up resolution for speed).
+    """
+
+    algo: str = "d2a"
+    horizon: int = 4
+    n_obs_steps: int = 2
+    n_action_steps: int = 4
+    num_points: int = 512
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    network: VelocityNetConfig = field(default_factory=VelocityNetConfig)
+
+    def __post_init__(self) -> None:
+        if self.algo not in ALGORITHMS:
+            raise ValueError(f"unknown algo {self.algo!r}; choose one of {ALGORITHMS}")
+        encoder = dataclasses.replace(
+            self.encoder, n_obs_steps=self.n_obs_steps, use_imagination=uses_imagination(self.algo)
+        )
+        object.__setattr__(self, "encoder", encoder)
+
+    @property
+    def executed_actions(self) -> int:
+        """Actions executed per chunk: the chunk starts at the oldest observation."""
+        return min(self.n_action_steps, self.horizon - (self.n_obs_steps - 1))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, raw: dict) -> PolicyConfig:
+        encoder, network = EncoderConfig(**raw["encoder"]), VelocityNetConfig(**raw["network"])
+        return cls(**{**raw, "encoder": encoder, "network": network})
+
+
+def make_expert(algo: str, cfg_enabled: bool | None = None):
+    """The action expert of ``algo`` (MeanFlow or diffusion)."""
+    if algo == "dp3":
+        from d2a_agents.policy.diffusion import Diffusion, DiffusionConfig
+
+        return Diffusion(DiffusionConfig())
+    from d2a_agents.policy.meanflow import MeanFlow, MeanFlowConfig
+
+    enabled = algo in ("d2a", "d2a-no-imagination") if cfg_enabled is None else cfg_enabled
+    return MeanFlow(MeanFlowConfig(cfg_enabled=enabled))
+
+
+def subsample_cloud(cloud: torch.Tensor, num_points: int) -> torch.Tensor:
+    """FPS a (N, 3) cloud down to ``num_points`` (unchanged when it is not larger)."""
+    if cloud.shape[0] <= num_points:
+        return cloud
+    return cloud[torch.as_tensor(farthest_point_indices(cloud.numpy(), num_points))]
+
+
+class Policy(nn.Module):
+    """Encoders + velocity network + expert + normalizers: everything a checkpoint holds."""
+
+    def __init__(
+        self, config: PolicyConfig, action_dim: int, state_dim: int, normalizers: dict[str, Normalizer]
+    ) -> None:
+        super().__init__()
+        self.config = config
+        self.action_dim, self.state_dim = action_dim, state_dim
+        self.encoder = ObservationEncoder(config.encoder, state_dim)
+        self.net = VelocityNet(config.network, config.horizon, action_dim, self.encoder.out_dim)
+        self.expert = make_expert(config.algo)
+        self.normalizers = normalizers
+
+    def condition(self, observation: dict[str, torch.Tensor]) -> torch.Tensor:
+        """f_c from an observation window whose ``agent_pos`` is already normalized."""
+        return self.encoder(observation)
+
+    def loss(self, observation: dict[str, torch.Tensor], actions: torch.Tensor, generator: torch.Generator | None):
+        """Training loss on a batch of windows (observations normalized, actions normalized)."""
+        return self.expert.loss(self.net, actions, self.condition(observation), generator=generator)
+
+    @torch.no_grad()
+    def predict_chunk(self, observation: dict[str, torch.Tensor], generator: torch.Generator | None = None):
+        """Action chunk (B, horizon, A) in env units from a raw observation window."""
+        observation = {**observation, "agent_pos": self.normalizers["agent_pos"].normalize(observation["agent_pos"])}
+        actions = self.expert.sample(self.net, self.condition(observation), generator=generator)
+        return self.normalizers["action"].unnormalize(actions)
+
+
+class PolicyRunner:
+    """Acts in an environment: keeps the last ``n_obs_steps`` observations and a queue of
+    planned actions, plans a new chunk when the queue is empty, and forgets both on reset.
+
+    Example:
+        >>> runner = PolicyRunner(policy)
+        >>> observation, _ = env.reset(seed=0); runner.reset()
+        >>> action = runner.act(observation)
+    """
+
+    def __init__(self, policy: Policy, seed: int = 0) -> None:
+        self.policy = policy.eval()
+        self.keys = ["point_cloud", "agent_pos"] + ([IMAGINED_KEY] if policy.config.encoder.use_imagination else [])
+        self.generator = torch.Generator().manual_seed(seed)
+        self.reset()
+
+    def reset(self) -> None:
+        self.history: deque[dict[str, torch.Tensor]] = deque(maxlen=self.policy.config.n_obs_steps)
+        self.queue: deque[np.ndarray] = deque()
+
+    def _observe(self, observation: dict[str, np.ndarray]) -> None:
+        frame = {}
+        for key in self.keys:
+            value = torch.as_tensor(np.asarray(observation[key]), dtype=torch.float32)
+            frame[key] = subsample_cloud(value[:, :3], self.policy.config.num_points) if value.ndim == 2 else value
+        if not self.history:
+            self.history.extend([frame] * self.policy.config.n_obs_steps)  # repeat the first frame, as in training
+        else:
+            self.history.append(frame)
+
+    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        """The next action (A,) float32 for this observation."""
+        self._observe(observation)
+        if not self.queue:
+            window = {key: torch.stack([frame[key] for frame in self.history])[None] for key in self.keys}
+            chunk = self.policy.predict_chunk(window, self.generator)[0].numpy()
+            start = self.policy.config.n_obs_steps - 1
+            self.queue.extend(chunk[start : start + self.policy.config.executed_actions])
+        action = self.queue.popleft().astype(np.float32)
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"the policy produced a non-finite action {action}")
+        return action
+
+
+class TorchRLPolicy(TensorDictModuleBase):
+    """A :class:`PolicyRunner` as a TorchRL policy: reads the env's observation keys, writes
+    ``action``. On the first step of an episode (``is_init``, from an ``InitTracker``) it
+    forgets its history and reseeds its sampler with the episode's seed, so results do not
+    depend on how episodes are spread over workers.
+    """
+
+    def __init__(self, policy: Policy) -> None:
+        super().__init__()
+        self.runner = PolicyRunner(policy)
+        self.in_keys = [*self.runner.keys, "is_init", "episode_seed"]
+        self.out_keys = ["action"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if bool(tensordict.get("is_init", torch.ones(1, dtype=torch.bool)).any()):
+            self.runner.reset()
+            self.runner.generator.manual_seed(int(tensordict.get("episode_seed", torch.zeros(())).reshape(-1)[0]))
+        observation = {key: tensordict.get(key).numpy() for key in self.runner.keys}
+        tensordict.set("action", torch.as_tensor(self.runner.act(observation)))
+        return tensordict

@@ -1,0 +1,207 @@
+"""Train a policy on stored demonstrations (``d2a train-policy``).
+
+AdamW with a warm-up + cosine learning-rate schedule, an exponential moving average of the
+weights (the EMA weights are what gets evaluated and deployed), periodic evaluation in
+the environment, atomic checkpoints that carry the normalizers, the configs and the world
+model's path, and resumption from the last checkpoint after a kill.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import functools
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from tqdm import tqdm
+
+from collectors.dataset import DemoWindows, Normalizer, WindowConfig, fit_normalizers
+from collectors.storage import DemoDataset
+from d2a_agents.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from d2a_agents.policy.agent import IMAGINED_KEY, Policy, PolicyConfig, TorchRLPolicy, subsample_cloud, uses_imagination
+from d2a_agents.world_model.data import WorldModelTransitions
+from d2a_agents.world_model.imagine import Imaginer
+
+CHECKPOINT_KIND = "policy"
+CHECKPOINT_NAME = "policy.pt"
+
+
+@dataclass(frozen=True)
+class TrainPolicyConfig:
+    """Every knob of ``d2a train-policy`` (architecture in ``policy``)."""
+
+    data: str
+    out: str
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    world_model: str | None = None
+    steps: int = 3000
+    batch_size: int = 64
+    learning_rate: float = 1e-4
+    weight_decay: float = 1e-6
+    warmup_steps: int = 100
+    ema_decay: float = 0.995
+    eval_every: int = 0  # 0: only at the end
+    eval_episodes: int = 20
+    eval_workers: int = 1
+    checkpoint_every: int = 200
+    seed: int = 0
+    progress: bool = True
+
+
+@dataclass
+class EvaluationPoint:
+    step: int
+    success_rate: float
+    episodes: int
+
+
+def _cosine_with_warmup(warmup: int, total: int):
+    def factor(step: int) -> float:
+        if step < warmup:
+            return (step + 1) / warmup
+        progress = (step - warmup) / max(1, total - warmup)
+        return 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+
+    return factor
+
+
+def training_frames(
+    dataset: DemoDataset, config: PolicyConfig, imaginer: Imaginer | None, progress: bool
+) -> TensorDict:
+    """In-memory frames for the windows: clouds subsampled to ``config.num_points`` by FPS,
+    and, for imagination variants, the world model's imagined cloud of every step."""
+    frames = dataset.frames()
+    clouds = torch.stack([subsample_cloud(c, config.num_points) for c in torch.as_tensor(frames["point_cloud"])])
+    data = {"point_cloud": clouds, "agent_pos": torch.as_tensor(frames["agent_pos"]).float(),
+            "action": torch.as_tensor(frames["action"]).float(), "episode": torch.as_tensor(frames["episode"])}
+    if imaginer is not None:
+        wm = imaginer.config
+        table = WorldModelTransitions(frames, imaginer.grid, wm.horizon, wm.action_history)
+        imagined = []
+        for row in tqdm(range(len(table)), desc="imagining", disable=not progress):
+            past = table.history[row]
+            actions = torch.where((past >= 0)[:, None], data["action"][past.clamp_min(0)], torch.zeros(1))
+            cloud = imaginer(frames["point_cloud"][table.rows[row]], actions)
+            imagined.append(subsample_cloud(torch.as_tensor(cloud), config.num_points))
+        data[IMAGINED_KEY] = torch.stack(imagined)
+    return TensorDict(data, batch_size=[len(clouds)])
+
+
+def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, Any]]:
+    """The policy of a checkpoint (EMA weights by default) and the checkpoint's metadata."""
+    payload = load_checkpoint(path, CHECKPOINT_KIND)
+    normalizers = {key: Normalizer.from_state_dict(state) for key, state in payload["normalizers"].items()}
+    policy = Policy(PolicyConfig.from_dict(payload["policy_config"]), payload["action_dim"], payload["state_dim"],
+                    normalizers)
+    policy.load_state_dict(payload["ema" if ema else "model"])
+    return policy.eval(), payload
+
+
+def load_torchrl_policy(path: str | Path) -> TorchRLPolicy:
+    """A checkpoint's EMA policy as a TorchRL policy (a picklable factory for eval workers)."""
+    return TorchRLPolicy(load_policy(path)[0])
+
+
+def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
+    """The env settings the policy was trained with, plus its world model when it imagines."""
+    kwargs = {k: v for k, v in payload["env_kwargs"][task].items() if k != "max_episode_steps"}
+    if payload["world_model"] is not None:
+        kwargs["world_model"] = payload["world_model"]
+    return kwargs
+
+
+def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoint]]:
+    """Train (or resume) a policy; returns the EMA policy and its evaluation history."""
+    from collectors.evaluation import evaluate
+
+    dataset = DemoDataset.open(config.data)
+    if uses_imagination(config.policy.algo) and config.world_model is None:
+        raise ValueError(f"algo {config.policy.algo!r} imagines the future: pass --world-model")
+    imaginer = Imaginer.from_checkpoint(config.world_model) if uses_imagination(config.policy.algo) else None
+    if imaginer is not None and not set(dataset.metadata.tasks) <= set(imaginer_tasks(config.world_model)):
+        raise CheckpointError(f"world model {config.world_model} was not trained on every task of {config.data}")
+    frames = training_frames(dataset, config.policy, imaginer, config.progress)
+    normalizers = fit_normalizers(frames, keys=("action", "agent_pos"))
+    obs_keys = ("point_cloud", "agent_pos") + ((IMAGINED_KEY,) if imaginer is not None else ())
+    windows = DemoWindows(frames, WindowConfig(config.policy.horizon, config.policy.n_obs_steps,
+                                               config.policy.n_action_steps, obs_keys), normalizers=normalizers)
+    torch.manual_seed(config.seed)
+    policy = Policy(config.policy, frames["action"].shape[-1], frames["agent_pos"].shape[-1], normalizers)
+    ema = copy.deepcopy(policy).requires_grad_(False)
+    optimizer = torch.optim.AdamW(policy.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _cosine_with_warmup(config.warmup_steps, config.steps))
+    generator = torch.Generator().manual_seed(config.seed)
+    out = Path(config.out)
+    path = out / CHECKPOINT_NAME
+    static = {
+        "policy_config": config.policy.to_dict(), "action_dim": policy.action_dim, "state_dim": policy.state_dim,
+        "normalizers": {key: n.state_dict() for key, n in normalizers.items()}, "world_model": config.world_model,
+        "tasks": sorted(dataset.metadata.tasks), "env_kwargs": dataset.metadata.tasks, "data": str(config.data),
+        "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "policy"},
+    }
+    start, history = 0, []
+    if path.exists():
+        previous = load_checkpoint(path, CHECKPOINT_KIND)
+        for key in ("policy_config", "world_model", "tasks"):
+            if previous[key] != static[key]:
+                raise CheckpointError(f"{path} was trained with another {key}: choose another --out")
+        policy.load_state_dict(previous["model"])
+        ema.load_state_dict(previous["ema"])
+        optimizer.load_state_dict(previous["optimizer"])
+        scheduler.load_state_dict(previous["scheduler"])
+        generator.set_state(previous["generator"])
+        start, history = previous["step"], [EvaluationPoint(**point) for point in previous["history"]]
+
+    def checkpoint(step: int) -> None:
+        save_checkpoint(path, CHECKPOINT_KIND, {
+            **static, "model": policy.state_dict(), "ema": ema.state_dict(), "optimizer": optimizer.state_dict(),
+            "scheduler": scheduler.state_dict(), "generator": generator.get_state(), "step": step,
+            "history": [dataclasses.asdict(point) for point in history],
+        })
+
+    def evaluate_now(step: int) -> None:
+        task = static["tasks"][0]
+        result = evaluate(functools.partial(load_torchrl_policy, path), task, config.eval_episodes, seed=10_000,
+                          env_kwargs=eval_env_kwargs(static, task), workers=config.eval_workers, progress=False)
+        history.append(EvaluationPoint(step, result.success_rate, result.episodes))
+        bar.write(f"step {step}: {task} success {result.success_rate:.0%} over {result.episodes} episodes")
+
+    bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc=f"{config.policy.algo} policy",
+               disable=not config.progress)
+    started = time.perf_counter()
+    for step in bar:
+        batch = windows.sample(config.batch_size, generator)
+        observation = {key: batch["obs", key] for key in obs_keys}
+        loss, _ = policy.loss(observation, batch["action"], generator)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        scheduler.step()
+        with torch.no_grad():
+            for average, current in zip(ema.parameters(), policy.parameters(), strict=True):
+                average.lerp_(current, 1 - config.ema_decay)
+        bar.set_postfix(loss=f"{loss.item():.4f}")
+        done = step + 1
+        if done % config.checkpoint_every == 0 or done == config.steps:
+            checkpoint(done)
+        if (config.eval_every and done % config.eval_every == 0) or done == config.steps:
+            checkpoint(done)
+            evaluate_now(done)
+            checkpoint(done)
+    bar.close()
+    if config.progress and start < config.steps:
+        print(f"trained {config.steps - start} steps in {time.perf_counter() - started:.0f} s -> {path}")
+    return ema.eval(), history
+
+
+def imaginer_tasks(world_model: str | Path) -> list[str]:
+    """Tasks a world-model checkpoint was trained on."""
+    from d2a_agents.world_model.imagine import CHECKPOINT_KIND as WORLD_MODEL_KIND
+
+    return load_checkpoint(world_model, WORLD_MODEL_KIND)["tasks"]
