@@ -6,7 +6,6 @@ import argparse
 import dataclasses
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 
 def _parse_box(text: str | None) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
@@ -163,28 +162,12 @@ def cmd_bench_wm(args: argparse.Namespace) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> None:
-    """A short point-cloud episode: reset, random steps with a progress bar, a picture."""
-    import gymnasium as gym
-    from tqdm import trange
+    from d2a.demo import demo_config, run_demo
 
-    import d2a_envs
-    from d2a_envs.viz import plot_task_point_cloud
-
-    spec = d2a_envs.get_task(args.task)
-    env = gym.make(spec.env_id, **_env_kwargs(args))
-    observation, info = env.reset(seed=args.seed)
-    env.action_space.seed(args.seed)
-    counts = [info["num_points_in_crop"]]
-    for _ in trange(args.steps, desc=f"{spec.env_id} random steps"):
-        observation, _, _, _, info = env.step(env.action_space.sample())
-        counts.append(info["num_points_in_crop"])
-    env.close()
-    cloud = observation["point_cloud"]
-    print(f"observation keys: {sorted(observation)}; point_cloud {cloud.shape} {cloud.dtype}")
-    median = sorted(counts)[len(counts) // 2]
-    print(f"points in the crop box per step: min {min(counts)}, median {median}, max {max(counts)}")
-    out = Path(args.out_dir) / f"{spec.name}_pointcloud.png"
-    print(f"wrote {plot_task_point_cloud(spec.name, out, seed=args.seed, steps=args.steps, **_env_kwargs(args))}")
+    run_demo(demo_config(
+        task=args.task, out=args.out_dir, episodes=args.episodes, world_model_steps=args.wm_steps,
+        policy_steps=args.policy_steps, eval_episodes=args.eval_episodes, seed=args.seed,
+    ))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -290,10 +273,14 @@ def build_parser() -> argparse.ArgumentParser:
     bench_wm.add_argument("--workdir", default="outputs/bench_wm")
     bench_wm.set_defaults(func=cmd_bench_wm)
 
-    demo = commands.add_parser("demo", help="the end-to-end demo on an embedded default")
-    _add_env_options(demo)
-    demo.add_argument("--steps", type=int, default=50)
-    demo.add_argument("--out-dir", default="outputs/demo")
+    demo = commands.add_parser("demo", help="end to end on Hammer: collect, world model, D2A policy, evaluate")
+    demo.add_argument("--task", default=None, help="default: hammer")
+    demo.add_argument("--out-dir", default=None, help="default: outputs/demo")
+    demo.add_argument("--episodes", type=int, default=None, help="demonstrations (default 10)")
+    demo.add_argument("--wm-steps", type=int, default=None)
+    demo.add_argument("--policy-steps", type=int, default=None)
+    demo.add_argument("--eval-episodes", type=int, default=None)
+    demo.add_argument("--seed", type=int, default=None)
     demo.set_defaults(func=cmd_demo)
     return parser
 

@@ -58,6 +58,9 @@ class PolicyConfig:
             self.encoder, n_obs_steps=self.n_obs_steps, use_imagination=uses_imagination(self.algo)
         )
         object.__setattr__(self, "encoder", encoder)
+        # The time scale belongs to the algorithm: DDPM's 1000 for diffusion, 1 for flows.
+        time_scale = 1000.0 if self.algo == "dp3" else 1.0
+        object.__setattr__(self, "network", dataclasses.replace(self.network, time_scale=time_scale))
 
     @property
     def executed_actions(self) -> int:

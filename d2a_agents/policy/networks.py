@@ -40,6 +40,7 @@ class VelocityNetConfig:
     hidden: int = 256
     layers: int = 4
     time_embed_dim: int = 64
+    time_scale: float = 1.0  # times in [0, 1] are multiplied by this before the sinusoids
 
 
 class PointCloudEncoder(nn.Module):
@@ -84,11 +85,16 @@ class ObservationEncoder(nn.Module):
         return torch.cat(parts, dim=-1).flatten(1)
 
 
-def time_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
-    """Sinusoidal embedding (B, dim) of times (B,) in [0, 1] (scaled by 1000 as in DDPM)."""
+def time_embedding(t: torch.Tensor, dim: int, scale: float = 1.0) -> torch.Tensor:
+    """Sinusoidal embedding (B, dim) of times (B,) in [0, 1], multiplied by ``scale`` first.
+
+    Diffusion uses DDPM's scale (1000: discrete timesteps must be told apart). Flow models
+    need scale 1: MeanFlow's target contains d u / d t, which a 1000x scale makes enormous
+    (training then does not converge).
+    """
     half = dim // 2
     frequencies = torch.exp(-math.log(10000.0) * torch.arange(half, device=t.device, dtype=torch.float32) / half)
-    angles = 1000.0 * t.float()[:, None] * frequencies[None]
+    angles = scale * t.float()[:, None] * frequencies[None]
     return torch.cat([angles.sin(), angles.cos()], dim=-1)
 
 
@@ -117,8 +123,8 @@ class VelocityNet(nn.Module):
         """z (B, T, A), r and t (B,), cond (B, C), drop (B,) bool -> (B, T, A)."""
         if drop is not None:
             cond = torch.where(drop[:, None], self.null_condition.expand_as(cond), cond)
-        dim = self.config.time_embed_dim
-        context = torch.cat([cond, time_embedding(t, dim), time_embedding(t - r, dim)], dim=-1)
+        dim, scale = self.config.time_embed_dim, self.config.time_scale
+        context = torch.cat([cond, time_embedding(t, dim, scale), time_embedding(t - r, dim, scale)], dim=-1)
         hidden = self.input(z.flatten(1))
         for block, film in zip(self.blocks, self.films, strict=True):
             scale, shift = film(context).chunk(2, dim=-1)

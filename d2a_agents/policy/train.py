@@ -145,7 +145,7 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         "tasks": sorted(dataset.metadata.tasks), "env_kwargs": dataset.metadata.tasks, "data": str(config.data),
         "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "policy"},
     }
-    start, history = 0, []
+    start, history, losses = 0, [], []
     if path.exists():
         previous = load_checkpoint(path, CHECKPOINT_KIND)
         for key in ("policy_config", "world_model", "tasks"):
@@ -157,12 +157,13 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         scheduler.load_state_dict(previous["scheduler"])
         generator.set_state(previous["generator"])
         start, history = previous["step"], [EvaluationPoint(**point) for point in previous["history"]]
+        losses = previous["losses"]
 
     def checkpoint(step: int) -> None:
         save_checkpoint(path, CHECKPOINT_KIND, {
             **static, "model": policy.state_dict(), "ema": ema.state_dict(), "optimizer": optimizer.state_dict(),
             "scheduler": scheduler.state_dict(), "generator": generator.get_state(), "step": step,
-            "history": [dataclasses.asdict(point) for point in history],
+            "history": [dataclasses.asdict(point) for point in history], "losses": losses,
         })
 
     def evaluate_now(step: int) -> None:
@@ -188,6 +189,7 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
                 average.lerp_(current, 1 - config.ema_decay)
         bar.set_postfix(loss=f"{loss.item():.4f}")
         done = step + 1
+        losses.append((done, loss.item()))
         if done % config.checkpoint_every == 0 or done == config.steps:
             checkpoint(done)
         if (config.eval_every and done % config.eval_every == 0) or done == config.steps:

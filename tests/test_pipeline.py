@@ -1,0 +1,86 @@
+"""Short end-to-end paths: collect -> train a few steps -> evaluate, for the policy variants."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from collectors.collect import CollectConfig, collect
+from collectors.evaluation import evaluate
+from d2a_agents.checkpoint import CheckpointError, load_checkpoint
+from d2a_agents.policy.agent import PolicyConfig
+from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
+from d2a_agents.policy.train import (
+    CHECKPOINT_NAME,
+    TrainPolicyConfig,
+    eval_env_kwargs,
+    load_policy,
+    load_torchrl_policy,
+    train_policy,
+)
+from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
+from d2a_agents.world_model.triplane import WorldModelConfig
+
+ENV_KWARGS = {"image_size": 48, "num_points": 128}
+TINY = dict(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)), network=VelocityNetConfig(hidden=32, layers=2))
+
+
+@pytest.fixture(scope="module")
+def reach_data(tmp_path_factory) -> str:
+    out = tmp_path_factory.mktemp("pipeline") / "reach"
+    collect(CollectConfig(tasks=("reach",), out=str(out), episodes=2, env_kwargs=ENV_KWARGS, progress=False))
+    return str(out)
+
+
+@pytest.fixture(scope="module")
+def world_model(reach_data, tmp_path_factory) -> str:
+    out = tmp_path_factory.mktemp("wm") / "wm.pt"
+    model = WorldModelConfig(resolution=(16, 16, 8))
+    train_world_model(TrainWorldModelConfig(data=reach_data, out=str(out), model=model, steps=2, batch_size=2,
+                                            queries=256, validate_every=2, validation_stride=20, progress=False))
+    return str(out)
+
+
+def policy_config(algo: str, data: str, out, world_model: str | None = None, steps: int = 3) -> TrainPolicyConfig:
+    return TrainPolicyConfig(data=data, out=str(out), policy=PolicyConfig(algo=algo, **TINY),
+                             world_model=world_model, steps=steps, batch_size=4, eval_episodes=1, checkpoint_every=2,
+                             progress=False)
+
+
+@pytest.mark.parametrize("algo", ["mp1", "dp3"])
+def test_collect_train_evaluate_without_imagination(algo, reach_data, tmp_path):
+    _, history = train_policy(policy_config(algo, reach_data, tmp_path))
+    assert [point.step for point in history] == [3] and history[0].episodes == 1
+    payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
+    assert set(payload["normalizers"]) == {"action", "agent_pos"}
+    result = evaluate(lambda: load_torchrl_policy(tmp_path / CHECKPOINT_NAME), "reach", 1, seed=5,
+                      env_kwargs=eval_env_kwargs(payload, "reach"), progress=False)
+    assert len(result.successes) == 1 and len(result.returns) == 1
+
+
+def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_model, tmp_path):
+    policy, history = train_policy(policy_config("d2a", reach_data, tmp_path, world_model=world_model))
+    assert policy.config.encoder.use_imagination
+    payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
+    assert eval_env_kwargs(payload, "reach")["world_model"] == world_model  # acts with imagination
+    assert history[0].episodes == 1
+
+
+def test_training_resumes_from_its_checkpoint(reach_data, tmp_path):
+    train_policy(policy_config("mp1", reach_data, tmp_path, steps=2))
+    first, _ = load_policy(tmp_path / CHECKPOINT_NAME)
+    _, history = train_policy(policy_config("mp1", reach_data, tmp_path, steps=4))
+    assert load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["step"] == 4
+    assert len(load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["losses"]) == 4  # 2 before + 2 after resuming
+    resumed, _ = load_policy(tmp_path / CHECKPOINT_NAME)
+    assert not torch.equal(first.net.input.weight, resumed.net.input.weight)
+
+
+def test_imagination_variants_need_a_fitting_world_model(reach_data, tmp_path):
+    with pytest.raises(ValueError, match="--world-model"):
+        train_policy(policy_config("d2a", reach_data, tmp_path))
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        train_policy(policy_config("d2a", reach_data, tmp_path, world_model=str(tmp_path / "missing.pt")))
+    train_policy(policy_config("mp1", reach_data, tmp_path / "run", steps=1))
+    with pytest.raises(CheckpointError, match="another policy_config"):
+        train_policy(policy_config("dp3", reach_data, tmp_path / "run", steps=2))
