@@ -152,6 +152,12 @@ def cmd_bench_experts(args: argparse.Namespace) -> None:
     run(dataclasses.replace(base, tasks=tuple(args.task or base.tasks), episodes=args.episodes, workers=args.workers))
 
 
+def cmd_bench_latency(args: argparse.Namespace) -> None:
+    from benchmarks.latency import LatencyBenchConfig, run
+
+    run(LatencyBenchConfig(task=args.task, num_points=args.num_points, repeats=args.repeats))
+
+
 def cmd_bench_wm(args: argparse.Namespace) -> None:
     from benchmarks.world_model import WorldModelBenchConfig, run
 
@@ -265,6 +271,12 @@ def build_parser() -> argparse.ArgumentParser:
     bench_experts.add_argument("--episodes", type=int, default=5)
     bench_experts.add_argument("--workers", type=int, default=2)
     bench_experts.set_defaults(func=cmd_bench_experts)
+
+    bench_latency = bench.add_parser("latency", help="batch-1 CPU latency: MeanFlow 1 NFE vs DDIM 10 NFE, imagination")
+    bench_latency.add_argument("--task", default="hammer")
+    bench_latency.add_argument("--num-points", type=int, default=1024)
+    bench_latency.add_argument("--repeats", type=int, default=50)
+    bench_latency.set_defaults(func=cmd_bench_latency)
 
     bench_wm = bench.add_parser("wm", help="world model IoU vs ablations and persistence (Table II)")
     bench_wm.add_argument("--task", action="append", default=None, help="default: hammer assembly push basketball")

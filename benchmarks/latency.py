@@ -1,0 +1,90 @@
+"""Inference latency at batch 1 on the CPU (``d2a bench latency``).
+
+D2A's MeanFlow expert (1 network evaluation per chunk) against the DP3-style diffusion
+expert (10 DDIM evaluations), with the same encoders and network, and the world model's
+imagination (voxelize, encode, band decode, FPS) per control step. Latency does not depend
+on the weights, so freshly initialised models are timed on real clouds of a D2A env.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gymnasium as gym
+import torch
+
+import d2a_envs
+from collectors.dataset import Normalizer
+from d2a_agents.policy.agent import Policy, PolicyConfig
+from d2a_agents.world_model.imagine import Imaginer
+from d2a_agents.world_model.triplane import CPU_PRESET, TriplaneWorldModel, WorldModelConfig
+from d2a_agents.world_model.voxels import VoxelGrid
+
+
+@dataclass(frozen=True)
+class LatencyBenchConfig:
+    """What ``d2a bench latency`` times."""
+
+    task: str = "hammer"
+    num_points: int = 1024
+    repeats: int = 50
+    world_models: tuple[WorldModelConfig, ...] = (WorldModelConfig(resolution=(32, 32, 8)), CPU_PRESET)
+    threads: int = 1
+
+
+def median_seconds(function: Callable[[], object], repeats: int) -> float:
+    function()  # warm-up
+    timings = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        timings.append(time.perf_counter() - start)
+    return statistics.median(timings)
+
+
+def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
+    torch.set_num_threads(config.threads)
+    spec = d2a_envs.get_task(config.task)
+    env = gym.make(spec.env_id, num_points=config.num_points)
+    observation, _ = env.reset(seed=0)
+    cloud = torch.as_tensor(observation["point_cloud"])
+    state_dim, action_dim = observation["agent_pos"].shape[0], env.action_space.shape[0]
+    normalizers = {"action": Normalizer(-torch.ones(action_dim), torch.ones(action_dim)),
+                   "agent_pos": Normalizer(-torch.ones(state_dim), torch.ones(state_dim))}
+    results = {}
+    for algo in ("d2a", "mp1", "dp3"):
+        policy_config = PolicyConfig(algo=algo, num_points=config.num_points)
+        policy = Policy(policy_config, action_dim, state_dim, normalizers).eval()
+        window = {"point_cloud": cloud.expand(1, policy_config.n_obs_steps, -1, -1),
+                  "agent_pos": torch.as_tensor(observation["agent_pos"]).expand(1, policy_config.n_obs_steps, -1)}
+        if policy_config.encoder.use_imagination:
+            window["imagined_point_cloud"] = window["point_cloud"]
+        results[algo] = median_seconds(lambda p=policy, w=window: p.predict_chunk(w), config.repeats)
+    box = env.get_wrapper_attr("config").crop_box
+    for model_config in config.world_models:
+        model = TriplaneWorldModel(dataclasses.replace(model_config, action_dim=action_dim))
+        imaginer = Imaginer(model, VoxelGrid(box, model_config.resolution), config.num_points)
+        actions = torch.zeros(model_config.action_history, action_dim)
+        name = "imagination " + "x".join(map(str, model_config.resolution))
+        results[name] = median_seconds(lambda i=imaginer, a=actions: i(cloud, a), config.repeats)
+    env.close()
+    print(f"\nbatch 1, {config.num_points} points, {config.threads} thread(s), median of {config.repeats}\n")
+    print("| what | network evaluations | median ms |")
+    print("| --- | --- | --- |")
+    print(f"| D2A policy (MeanFlow; current + imagined cloud encoders) | 1 | {1000 * results['d2a']:.2f} |")
+    print(f"| MeanFlow policy, one cloud encoder (MP1-style) | 1 | {1000 * results['mp1']:.2f} |")
+    print(f"| DP3-style policy (DDIM), the same single encoder | 10 | {1000 * results['dp3']:.2f} |")
+    for name, seconds in results.items():
+        if name.startswith("imagination"):
+            print(f"| world model {name} | 1 | {1000 * seconds:.2f} |")
+    print(f"\nsame encoder, DDIM 10 steps / MeanFlow 1 step: {results['dp3'] / results['mp1']:.1f}x; "
+          f"DP3-style / D2A: {results['dp3'] / results['d2a']:.1f}x")
+    return results
+
+
+if __name__ == "__main__":
+    run()
