@@ -40,3 +40,20 @@ def load_checkpoint(path: str | Path, kind: str) -> dict[str, Any]:
     if payload.get("kind") != kind:
         raise CheckpointError(f"{path} is a {payload.get('kind')} checkpoint, not a {kind}")
     return payload
+
+
+def load_for_resume(
+    path: str | Path, kind: str, expected: dict[str, Any], keys: tuple[str, ...]
+) -> dict[str, Any] | None:
+    """The checkpoint to resume from, or ``None`` when there is none yet.
+
+    Refuses one whose ``keys`` differ from ``expected`` (another model, grid, task list...):
+    resuming it would silently mix two runs.
+    """
+    if not Path(path).exists():
+        return None
+    previous = load_checkpoint(path, kind)
+    for key in keys:
+        if previous.get(key) != expected[key]:
+            raise CheckpointError(f"{path} was trained with another {key} ({previous.get(key)}); choose another --out")
+    return previous

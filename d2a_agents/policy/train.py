@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from collectors.dataset import DemoWindows, Normalizer, WindowConfig, fit_normalizers
 from collectors.storage import DemoDataset
-from d2a_agents.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from d2a_agents.checkpoint import CheckpointError, load_checkpoint, load_for_resume, save_checkpoint
 from d2a_agents.policy.agent import IMAGINED_KEY, Policy, PolicyConfig, TorchRLPolicy, subsample_cloud, uses_imagination
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import Imaginer
@@ -146,11 +146,8 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "policy"},
     }
     start, history, losses = 0, [], []
-    if path.exists():
-        previous = load_checkpoint(path, CHECKPOINT_KIND)
-        for key in ("policy_config", "world_model", "tasks"):
-            if previous[key] != static[key]:
-                raise CheckpointError(f"{path} was trained with another {key}: choose another --out")
+    previous = load_for_resume(path, CHECKPOINT_KIND, static, ("policy_config", "world_model", "tasks"))
+    if previous is not None:
         policy.load_state_dict(previous["model"])
         ema.load_state_dict(previous["ema"])
         optimizer.load_state_dict(previous["optimizer"])

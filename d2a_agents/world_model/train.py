@@ -18,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from collectors.storage import DemoDataset
-from d2a_agents.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from d2a_agents.checkpoint import load_for_resume, save_checkpoint
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import CHECKPOINT_KIND, logit, predict_grid, predict_logits
 from d2a_agents.world_model.losses import balanced_queries, focal_loss
@@ -160,11 +160,8 @@ def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel
     payload = _payload(config, dataset, grid)
     start, history = 0, []
     out = Path(config.out)
-    if out.exists():
-        previous = load_checkpoint(out, CHECKPOINT_KIND)
-        for key in ("config", "grid", "tasks"):
-            if previous[key] != payload[key]:
-                raise CheckpointError(f"{out} was trained with another {key} ({previous[key]}); choose another --out")
+    previous = load_for_resume(out, CHECKPOINT_KIND, payload, ("config", "grid", "tasks"))
+    if previous is not None:
         model.load_state_dict(previous["model"])
         optimizer.load_state_dict(previous["optimizer"])
         generator.set_state(previous["generator"])

@@ -28,27 +28,15 @@ class AdroitEnv(SuiteEnv):
         gym.register_envs(gymnasium_robotics)
         self.task = task
         # The raw env: episode length is set by the D2A registration, not gymnasium-robotics.
-        self._sim = gym.make(ADROIT_ENV_IDS[task], max_episode_steps=None).unwrapped
-        self._actuated_qpos = _actuated_joint_qpos_addresses(self._sim.model)
+        sim = gym.make(ADROIT_ENV_IDS[task], max_episode_steps=None).unwrapped
+        self._actuated_qpos = _actuated_joint_qpos_addresses(sim.model)
         super().__init__(
+            sim,
             agent_pos_dim=len(self._actuated_qpos),
-            state_dim=self._sim.observation_space.shape[0],
-            action_space=self._sim.action_space,
+            state_dim=sim.observation_space.shape[0],
+            action_space=sim.action_space,
             state_obs=state_obs,
         )
-
-    @property
-    def model(self) -> mujoco.MjModel:
-        return self._sim.model
-
-    @property
-    def data(self) -> mujoco.MjData:
-        return self._sim.data
-
-    @property
-    def simulator(self) -> gym.Env:
-        """The underlying gymnasium-robotics environment."""
-        return self._sim
 
     def agent_pos(self) -> np.ndarray:
         return self._sim.data.qpos[self._actuated_qpos].copy()
@@ -56,13 +44,6 @@ class AdroitEnv(SuiteEnv):
     def _reset_simulator(self, seed: int | None) -> tuple[np.ndarray, dict[str, Any]]:
         state, info = self._sim.reset(seed=seed)
         return state, dict(info)
-
-    def _step_simulator(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
-        state, reward, terminated, _, info = self._sim.step(action)
-        return state, float(reward), bool(terminated), dict(info)
-
-    def close(self) -> None:
-        self._sim.close()
 
 
 def _actuated_joint_qpos_addresses(model: mujoco.MjModel) -> np.ndarray:

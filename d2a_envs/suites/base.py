@@ -18,11 +18,17 @@ from gymnasium import spaces
 
 
 class SuiteEnv(gym.Env, ABC):
-    """Base class: shared observation space, action checks and info handling."""
+    """Base class: shared observation space, action checks and info handling.
+
+    Subclasses wrap a MuJoCo-based benchmark env ``sim`` (exposing ``model`` and ``data``).
+    """
 
     metadata = {"render_modes": []}
 
-    def __init__(self, agent_pos_dim: int, state_dim: int, action_space: spaces.Box, state_obs: bool) -> None:
+    def __init__(
+        self, sim: gym.Env, agent_pos_dim: int, state_dim: int, action_space: spaces.Box, state_obs: bool
+    ) -> None:
+        self._sim = sim
         self.state_obs = state_obs
         self.action_space = action_space
         observation = {"agent_pos": spaces.Box(-np.inf, np.inf, (agent_pos_dim,), np.float32)}
@@ -31,14 +37,22 @@ class SuiteEnv(gym.Env, ABC):
         self.observation_space = spaces.Dict(observation)
 
     @property
-    @abstractmethod
     def model(self) -> mujoco.MjModel:
         """The MuJoCo model of the scene."""
+        return self._sim.model
 
     @property
-    @abstractmethod
     def data(self) -> mujoco.MjData:
         """The MuJoCo data (current state) of the scene."""
+        return self._sim.data
+
+    @property
+    def simulator(self) -> gym.Env:
+        """The underlying benchmark environment."""
+        return self._sim
+
+    def close(self) -> None:
+        self._sim.close()
 
     @abstractmethod
     def agent_pos(self) -> np.ndarray:
@@ -48,9 +62,10 @@ class SuiteEnv(gym.Env, ABC):
     def _reset_simulator(self, seed: int | None) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset the task, seeding its layout when ``seed`` is given; returns (state, info)."""
 
-    @abstractmethod
     def _step_simulator(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
         """Advance one control step; returns (state, reward, terminated, info with success)."""
+        state, reward, terminated, _, info = self._sim.step(action)
+        return state, float(reward), bool(terminated), dict(info)
 
     def _observation(self, state: np.ndarray) -> dict[str, np.ndarray]:
         observation = {"agent_pos": self.agent_pos().astype(np.float32)}

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import mujoco
 import numpy as np
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
@@ -37,26 +36,13 @@ class MetaWorldEnv(SuiteEnv):
         sim.seeded_rand_vec = True
         sim._set_task_called = True
         sim.max_path_length = _UNLIMITED_PATH_LENGTH
-        self._sim = sim
         super().__init__(
+            sim,
             agent_pos_dim=4,
             state_dim=sim.sawyer_observation_space.shape[0],
             action_space=sim.action_space,
             state_obs=state_obs,
         )
-
-    @property
-    def model(self) -> mujoco.MjModel:
-        return self._sim.model
-
-    @property
-    def data(self) -> mujoco.MjData:
-        return self._sim.data
-
-    @property
-    def simulator(self):
-        """The underlying Meta-World environment."""
-        return self._sim
 
     def agent_pos(self) -> np.ndarray:
         return self._sim._get_curr_obs_combined_no_goal()[:4]
@@ -66,10 +52,3 @@ class MetaWorldEnv(SuiteEnv):
             self._sim.seed(seed)
         state, info = self._sim.reset()
         return state, dict(info)
-
-    def _step_simulator(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
-        state, reward, terminated, _, info = self._sim.step(action)
-        return state, float(reward), bool(terminated), dict(info)
-
-    def close(self) -> None:
-        self._sim.close()
