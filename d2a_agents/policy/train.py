@@ -176,7 +176,7 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
     for step in bar:
         batch = windows.sample(config.batch_size, generator)
         observation = {key: batch["obs", key] for key in obs_keys}
-        loss, _ = policy.loss(observation, batch["action"], generator)
+        loss, info = policy.loss(observation, batch["action"], generator)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -184,9 +184,10 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         with torch.no_grad():
             for average, current in zip(ema.parameters(), policy.parameters(), strict=True):
                 average.lerp_(current, 1 - config.ema_decay)
-        bar.set_postfix(loss=f"{loss.item():.4f}")
+        # MeanFlow's adaptively weighted loss stays near 1 by design: the curve shows the MSE.
+        bar.set_postfix(mse=f"{info['mse']:.4f}")
         done = step + 1
-        losses.append((done, loss.item()))
+        losses.append((done, info["mse"]))
         if done % config.checkpoint_every == 0 or done == config.steps:
             checkpoint(done)
         if (config.eval_every and done % config.eval_every == 0) or done == config.steps:
