@@ -82,7 +82,3 @@ class WorldModelTransitions:
     def sample(self, batch_size: int, generator: torch.Generator | None = None) -> TransitionBatch:
         """A uniform draw (with replacement) of ``batch_size`` transitions."""
         return self.get(torch.randint(len(self), (batch_size,), generator=generator))
-
-    def batches(self, batch_size: int) -> list[torch.Tensor]:
-        """Index chunks covering every transition once, in order (for evaluation)."""
-        return list(torch.arange(len(self)).split(batch_size))

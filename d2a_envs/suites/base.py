@@ -46,11 +46,6 @@ class SuiteEnv(gym.Env, ABC):
         """The MuJoCo data (current state) of the scene."""
         return self._sim.data
 
-    @property
-    def simulator(self) -> gym.Env:
-        """The underlying benchmark environment."""
-        return self._sim
-
     def close(self) -> None:
         self._sim.close()
 
