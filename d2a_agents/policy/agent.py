@@ -48,6 +48,7 @@ class PolicyConfig:
     n_obs_steps: int = 2
     n_action_steps: int = 4
     num_points: int = 512
+    cfg_thresholds: tuple[float, float] = (0.0, 0.5)  # (tau_l, tau_h) of eq. 7, for the CFG variants
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     network: VelocityNetConfig = field(default_factory=VelocityNetConfig)
 
@@ -73,19 +74,19 @@ class PolicyConfig:
     @classmethod
     def from_dict(cls, raw: dict) -> PolicyConfig:
         encoder, network = EncoderConfig(**raw["encoder"]), VelocityNetConfig(**raw["network"])
-        return cls(**{**raw, "encoder": encoder, "network": network})
+        return cls(**{**raw, "encoder": encoder, "network": network, "cfg_thresholds": tuple(raw["cfg_thresholds"])})
 
 
-def make_expert(algo: str, cfg_enabled: bool | None = None):
-    """The action expert of ``algo`` (MeanFlow or diffusion)."""
-    if algo == "dp3":
+def make_expert(config: PolicyConfig):
+    """The action expert of ``config.algo`` (MeanFlow, with adaptive CFG or not, or diffusion)."""
+    if config.algo == "dp3":
         from d2a_agents.policy.diffusion import Diffusion, DiffusionConfig
 
         return Diffusion(DiffusionConfig())
     from d2a_agents.policy.meanflow import MeanFlow, MeanFlowConfig
 
-    enabled = algo in ("d2a", "d2a-no-imagination") if cfg_enabled is None else cfg_enabled
-    return MeanFlow(MeanFlowConfig(cfg_enabled=enabled))
+    tau_l, tau_h = config.cfg_thresholds
+    return MeanFlow(MeanFlowConfig(cfg_enabled=config.algo in ("d2a", "d2a-no-imagination"), tau_l=tau_l, tau_h=tau_h))
 
 
 def subsample_cloud(cloud: torch.Tensor, num_points: int) -> torch.Tensor:
@@ -106,7 +107,7 @@ class Policy(nn.Module):
         self.action_dim, self.state_dim = action_dim, state_dim
         self.encoder = ObservationEncoder(config.encoder, state_dim)
         self.net = VelocityNet(config.network, config.horizon, action_dim, self.encoder.out_dim)
-        self.expert = make_expert(config.algo)
+        self.expert = make_expert(config)
         self.normalizers = normalizers
 
     def condition(self, observation: dict[str, torch.Tensor]) -> torch.Tensor:

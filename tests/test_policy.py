@@ -1,0 +1,71 @@
+"""Policy configuration and the runner's observation history and action queue."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from collectors.dataset import Normalizer
+from d2a_agents.policy.agent import Policy, PolicyConfig, PolicyRunner
+from d2a_agents.policy.diffusion import Diffusion
+from d2a_agents.policy.meanflow import MeanFlow
+from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
+
+TINY = dict(num_points=16, encoder=EncoderConfig(point_widths=(8,)), network=VelocityNetConfig(hidden=16, layers=1))
+
+
+def tiny_policy(algo: str, **changes) -> Policy:
+    normalizers = {"action": Normalizer(-torch.ones(4), torch.ones(4)),
+                   "agent_pos": Normalizer(-torch.ones(4), torch.ones(4))}
+    return Policy(PolicyConfig(algo=algo, **{**TINY, **changes}), 4, 4, normalizers)
+
+
+@pytest.mark.parametrize("algo, expert, cfg, imagination, time_scale", [
+    ("d2a", MeanFlow, True, True, 1.0), ("d2a-no-cfg", MeanFlow, False, True, 1.0),
+    ("d2a-no-imagination", MeanFlow, True, False, 1.0), ("mp1", MeanFlow, False, False, 1.0),
+    ("dp3", Diffusion, None, False, 1000.0),
+])
+def test_algo_flag_selects_expert_cfg_and_imagination(algo, expert, cfg, imagination, time_scale):
+    policy = tiny_policy(algo, cfg_thresholds=(-0.5, 0.25))
+    assert isinstance(policy.expert, expert)
+    assert policy.config.encoder.use_imagination is imagination
+    assert policy.config.network.time_scale == time_scale
+    if cfg is not None:
+        assert policy.expert.config.cfg_enabled is cfg
+        assert (policy.expert.config.tau_l, policy.expert.config.tau_h) == (-0.5, 0.25)
+
+
+def test_config_round_trip_and_bad_algo():
+    config = PolicyConfig(algo="mp1", horizon=16, n_obs_steps=2, n_action_steps=8, cfg_thresholds=(-1.0, 0.0), **TINY)
+    assert PolicyConfig.from_dict(config.to_dict()) == config
+    assert config.executed_actions == 8
+    assert PolicyConfig(algo="mp1").executed_actions == 3  # horizon 4 starting at the older of 2 observations
+    with pytest.raises(ValueError, match="unknown algo"):
+        PolicyConfig(algo="ppo")
+
+
+def test_runner_plans_once_per_chunk_and_forgets_on_reset(monkeypatch):
+    runner = PolicyRunner(tiny_policy("mp1"))
+    windows = []
+    original = runner.policy.predict_chunk
+
+    def recording(window, generator=None):
+        windows.append({key: value.clone() for key, value in window.items()})
+        return original(window, generator)
+
+    monkeypatch.setattr(runner.policy, "predict_chunk", recording)
+    rng = np.random.default_rng(0)
+
+    def observation(value: float) -> dict[str, np.ndarray]:
+        return {"point_cloud": rng.random((32, 3)).astype(np.float32), "agent_pos": np.full(4, value, np.float32)}
+
+    actions = [runner.act(observation(float(step))) for step in range(7)]
+    assert len(windows) == 3  # steps 0, 3 and 6 plan; 3 actions executed per chunk
+    assert all(action.shape == (4,) and np.isfinite(action).all() for action in actions)
+    assert windows[0]["agent_pos"][0, :, 0].tolist() == [0.0, 0.0]  # first frame repeated
+    assert windows[1]["agent_pos"][0, :, 0].tolist() == [2.0, 3.0]  # the two latest observations
+    assert windows[0]["point_cloud"].shape == (1, 2, 16, 3)  # FPS to num_points
+    runner.reset()
+    runner.act(observation(9.0))
+    assert len(windows) == 4 and windows[3]["agent_pos"][0, :, 0].tolist() == [9.0, 9.0]
