@@ -141,6 +141,9 @@ def collect(config: CollectConfig) -> DemoDataset:
     if config.episodes <= 0:
         raise ValueError(f"episodes must be positive, got {config.episodes}")
     specs = [d2a_envs.get_task(task) for task in config.tasks]  # unknown names fail before any work
+    no_expert = [spec.name for spec in specs if spec.suite != "metaworld"]
+    if no_expert:
+        raise ValueError(f"no scripted expert for {no_expert}: demonstrations can be collected for Meta-World tasks")
     dataset = _open_output(config)
     for spec in specs:
         record = collect_task(dataset, spec.name, config)

@@ -76,6 +76,14 @@ def test_existing_output_is_refused_without_append_or_overwrite(reach_dataset, t
     assert (foreign / "notes.txt").read_text() == "mine"
 
 
+def test_tasks_without_an_expert_are_refused_before_any_file_is_written(tmp_path):
+    with pytest.raises(ValueError, match="no scripted expert"):
+        collect(config(tmp_path / "adroit", tasks=("adroit-door",)))
+    with pytest.raises(ValueError, match="unknown task"):
+        collect(config(tmp_path / "typo", tasks=("hamer",)))
+    assert not (tmp_path / "adroit").exists() and not (tmp_path / "typo").exists()
+
+
 def test_truncated_and_foreign_directories_get_clear_errors(reach_dataset, tmp_path):
     import shutil
 
