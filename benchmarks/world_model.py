@@ -87,9 +87,10 @@ def run(config: WorldModelBenchConfig = WorldModelBenchConfig()) -> list[dict[st
           "train s | imagine ms/step |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for row in rows:
-        paper = PAPER_TRIPLANE_IOU.get(row["task"], float("nan")) if row["mode"] == "triplane" else float("nan")
+        paper = PAPER_TRIPLANE_IOU.get(row["task"]) if row["mode"] == "triplane" else None
         print(f"| {row['task']} | {row['mode']} | {100 * row['full']:.1f} | {100 * row['dynamic']:.1f} | "
-              f"{100 * row['persistence']:.1f} | {paper:.1f} | {row['params']} | {row['seconds']:.0f} | "
+              f"{100 * row['persistence']:.1f} | {'-' if paper is None else paper} | {row['params']} | "
+              f"{row['seconds']:.0f} | "
               f"{1000 * row['latency']:.1f} |")
     return rows
 
