@@ -85,9 +85,7 @@ def training_frames(
         table = WorldModelTransitions(frames, imaginer.grid, wm.horizon, wm.action_history)
         imagined = []
         for row in tqdm(range(len(table)), desc="imagining", disable=not progress):
-            past = table.history[row]
-            actions = torch.where((past >= 0)[:, None], data["action"][past.clamp_min(0)], torch.zeros(1))
-            cloud = imaginer(frames["point_cloud"][table.rows[row]], actions)
+            cloud = imaginer(frames["point_cloud"][table.rows[row]], table.past_actions(torch.tensor(row)))
             imagined.append(subsample_cloud(torch.as_tensor(cloud), config.num_points))
         data[IMAGINED_KEY] = torch.stack(imagined)
     return TensorDict(data, batch_size=[len(clouds)])
@@ -188,12 +186,12 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         bar.set_postfix(mse=f"{info['mse']:.4f}")
         done = step + 1
         losses.append((done, info["mse"]))
-        if done % config.checkpoint_every == 0 or done == config.steps:
-            checkpoint(done)
-        if (config.eval_every and done % config.eval_every == 0) or done == config.steps:
-            checkpoint(done)
+        evaluating = (config.eval_every and done % config.eval_every == 0) or done == config.steps
+        if evaluating or done % config.checkpoint_every == 0:
+            checkpoint(done)  # evaluation workers load the policy from this file
+        if evaluating:
             evaluate_now(done)
-            checkpoint(done)
+            checkpoint(done)  # again, with the evaluation in the history
     bar.close()
     if config.progress and start < config.steps:
         print(f"trained {config.steps - start} steps in {time.perf_counter() - started:.0f} s -> {path}")

@@ -69,14 +69,17 @@ class WorldModelTransitions:
     def __len__(self) -> int:
         return len(self.rows)
 
+    def past_actions(self, indices: torch.Tensor) -> torch.Tensor:
+        """Action histories (..., K, A) of the transitions at ``indices``; zeros before the episode start."""
+        history = self.history[indices]
+        actions = torch.as_tensor(self.frames["action"][history.clamp_min(0).reshape(-1)]).reshape(*history.shape, -1)
+        return torch.where((history >= 0)[..., None], actions, torch.zeros_like(actions)).float()
+
     def get(self, indices: torch.Tensor) -> TransitionBatch:
         """The transitions at ``indices`` (positions in this table), voxelised."""
         clouds = torch.as_tensor(self.frames["point_cloud"][self.rows[indices]])
         futures = torch.as_tensor(self.frames["point_cloud"][self.targets[indices]])
-        history = self.history[indices]
-        actions = torch.as_tensor(self.frames["action"][history.clamp_min(0).reshape(-1)]).reshape(*history.shape, -1)
-        actions = torch.where((history >= 0)[..., None], actions, torch.zeros_like(actions))
-        return TransitionBatch(current=self.grid.voxelize(clouds), actions=actions.float(),
+        return TransitionBatch(current=self.grid.voxelize(clouds), actions=self.past_actions(indices),
                                target=self.grid.voxelize(futures))
 
     def sample(self, batch_size: int, generator: torch.Generator | None = None) -> TransitionBatch:
