@@ -12,6 +12,7 @@ import torch
 
 def _atomic_write(path: str | Path, mode: str, write: Callable[[IO[Any]], None]) -> None:
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(path.name + ".tmp")
     with open(temporary, mode) as handle:
         write(handle)

@@ -167,6 +167,16 @@ def cmd_bench_wm(args: argparse.Namespace) -> None:
                             model=model))
 
 
+def cmd_bench_success(args: argparse.Namespace) -> None:
+    from benchmarks.success import PRESETS, run
+
+    base = PRESETS[args.preset]
+    changes = dict(tasks=tuple(args.task) if args.task else None, algos=tuple(args.algo) if args.algo else None,
+                   seeds=tuple(args.seed) if args.seed else None, steps=args.steps, workdir=args.workdir,
+                   workers=args.workers)
+    run(dataclasses.replace(base, **{k: v for k, v in changes.items() if v is not None}))
+
+
 def cmd_demo(args: argparse.Namespace) -> None:
     from d2a.demo import demo_config, run_demo
 
@@ -284,6 +294,21 @@ def build_parser() -> argparse.ArgumentParser:
     bench_wm.add_argument("--resolution", type=int, nargs=3, default=None, metavar=("X", "Y", "Z"))
     bench_wm.add_argument("--workdir", default="outputs/bench_wm")
     bench_wm.set_defaults(func=cmd_bench_wm)
+
+    bench_success = bench.add_parser("success", help="success rates of d2a / d2a-no-cfg / mp1 / dp3, both protocols")
+    bench_success.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
+                               help="cpu: 1 seed, narrow nets, short training; paper: 3 seeds, full protocol (GPU)")
+    bench_success.add_argument("--task", action="append", default=None,
+                               help="default: hammer lever-pull assembly push stick-pull")
+    bench_success.add_argument("--algo", action="append", default=None,
+                               choices=("d2a", "d2a-no-cfg", "d2a-no-imagination", "mp1", "dp3"),
+                               help="default: d2a d2a-no-cfg mp1 dp3")
+    bench_success.add_argument("--seed", type=int, action="append", default=None, help="default: the preset's")
+    bench_success.add_argument("--steps", type=int, default=None, help="policy training steps (default: preset's)")
+    bench_success.add_argument("--workers", type=int, default=None, help="evaluation worker processes")
+    bench_success.add_argument("--workdir", default="outputs/bench_success",
+                               help="data, models and finished cells; a rerun resumes")
+    bench_success.set_defaults(func=cmd_bench_success)
 
     demo = commands.add_parser("demo", help="end to end on Hammer: collect, world model, D2A policy, evaluate")
     demo.add_argument("--task", default=None, help="default: hammer")

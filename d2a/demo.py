@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -23,8 +23,7 @@ import torch  # noqa: E402
 from collectors.collect import CollectConfig, collect  # noqa: E402
 from collectors.evaluation import evaluate  # noqa: E402
 from d2a_agents.checkpoint import load_checkpoint  # noqa: E402
-from d2a_agents.policy.agent import PolicyConfig  # noqa: E402
-from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig  # noqa: E402
+from d2a_agents.policy.agent import CPU_POLICY_PRESET, PolicyConfig  # noqa: E402
 from d2a_agents.policy.train import (  # noqa: E402
     CHECKPOINT_NAME,
     TrainPolicyConfig,
@@ -47,10 +46,7 @@ class DemoConfig:
     seed: int = 0
     world_model: WorldModelConfig = WorldModelConfig(resolution=(32, 32, 8))
     world_model_steps: int = 300
-    policy: PolicyConfig = field(default_factory=lambda: PolicyConfig(
-        algo="d2a", num_points=256, encoder=EncoderConfig(point_widths=(32, 64, 128)),
-        network=VelocityNetConfig(hidden=128, layers=3),
-    ))
+    policy: PolicyConfig = CPU_POLICY_PRESET
     policy_steps: int = 1500
     batch_size: int = 32
     eval_episodes: int = 20

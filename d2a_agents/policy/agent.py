@@ -80,6 +80,13 @@ class PolicyConfig:
         return cls(**{**raw, "encoder": encoder, "network": network, "cfg_thresholds": tuple(raw["cfg_thresholds"])})
 
 
+# What fits a 2-core CPU: 256 points into the encoders, a third of DP3's encoder widths, a
+# narrower velocity network; gives up resolution and capacity against the paper's sizes.
+CPU_POLICY_PRESET = PolicyConfig(
+    num_points=256, encoder=EncoderConfig(point_widths=(32, 64, 128)), network=VelocityNetConfig(hidden=128, layers=3)
+)
+
+
 def make_expert(config: PolicyConfig):
     """The action expert of ``config.algo`` (MeanFlow, with adaptive CFG or not, or diffusion)."""
     if config.algo == "dp3":

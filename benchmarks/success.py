@@ -1,0 +1,213 @@
+"""Success-rate benchmark (``d2a bench success``): policy variants side by side.
+
+For each task: collect (or reuse) the expert demonstrations, train one world model that the
+imagination variants share, then for every (variant, seed) train a policy on the same demos
+with the same budget, evaluate it periodically during training (the paper's protocol: the
+mean of the top-5 evaluations) and evaluate its final checkpoint on new layouts (the honest
+protocol: one checkpoint chosen in advance, a Wilson interval). Prints a markdown table.
+
+Every finished (task, variant, seed) is stored as ``cells/<task>_<algo>_s<seed>.json``
+(atomic write); a rerun skips finished cells and resumes an interrupted training from its
+checkpoint, so a long run can be killed and restarted.
+
+Two presets: ``paper`` (the paper's protocol shape and the policy's full-size networks:
+3 seeds, 20-episode evaluations, 100 final episodes; GPU work) and ``cpu`` (what fits a
+2-core CPU: one seed, narrow networks, a short training, one final 20-episode evaluation,
+where the two protocols coincide).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from collectors.collect import CollectConfig, collect
+from collectors.evaluation import evaluate, honest_protocol, paper_protocol
+from collectors.storage import DemoDataset
+from d2a.atomic import atomic_write_text
+from d2a_agents.policy.agent import CPU_POLICY_PRESET, PolicyConfig, uses_imagination
+from d2a_agents.policy.train import (
+    CHECKPOINT_NAME,
+    TrainPolicyConfig,
+    eval_env_kwargs,
+    load_policy,
+    load_torchrl_policy,
+    train_policy,
+)
+from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
+from d2a_agents.world_model.triplane import WorldModelConfig
+
+# Table IV of the paper, 10 demonstrations (MP1 / D2A, success %); it has no Hammer column.
+PAPER_TABLE_IV = {"lever-pull": (81, 85), "assembly": (98, 100), "push": (74, 85), "stick-pull": (74, 81)}
+
+
+@dataclass(frozen=True)
+class SuccessBenchConfig:
+    """What ``d2a bench success`` runs (defaults: the ``cpu`` preset)."""
+
+    tasks: tuple[str, ...] = ("hammer", "lever-pull", "assembly", "push", "stick-pull")
+    algos: tuple[str, ...] = ("d2a", "d2a-no-cfg", "mp1", "dp3")
+    seeds: tuple[int, ...] = (0,)
+    demos: int = 10
+    workdir: str = "outputs/bench_success"
+    policy: PolicyConfig = CPU_POLICY_PRESET
+    steps: int = 1500
+    batch_size: int = 32
+    learning_rate: float = 1e-3
+    evaluations: int = 1  # periodic evaluations during training, the last one at the final step
+    eval_episodes: int = 20  # per periodic evaluation (the paper: 20)
+    final_episodes: int = 0  # extra evaluation of the final checkpoint; 0: reuse the last periodic one
+    world_model: WorldModelConfig = WorldModelConfig(resolution=(32, 32, 8))
+    world_model_steps: int = 300
+    workers: int = 1
+    eval_seed: int = 10_000  # periodic evaluations (the same layouts each time)
+    final_seed: int = 100_000  # the final evaluation, when it runs
+
+
+PRESETS: dict[str, SuccessBenchConfig] = {
+    "cpu": SuccessBenchConfig(),
+    "paper": SuccessBenchConfig(
+        seeds=(0, 1, 2), policy=PolicyConfig(), steps=48_000, batch_size=128, learning_rate=1e-4, evaluations=20,
+        final_episodes=100, world_model=WorldModelConfig(), world_model_steps=20_000,
+    ),
+}
+
+
+@dataclass
+class Cell:
+    """The result of one (task, algo, seed) training run.
+
+    ``periodic``: success rate of each evaluation during training, in order (the last one is
+    of the final checkpoint). ``final_wins`` / ``final_episodes``: the final checkpoint's
+    evaluation (the extra one when ``final_episodes`` > 0, else the last periodic one).
+    ``train_seconds``: wall time of the training call that finished the run (shorter when
+    it resumed an interrupted run), periodic evaluations included.
+    """
+
+    task: str
+    algo: str
+    seed: int
+    periodic: list[float]
+    final_wins: int
+    final_episodes: int
+    train_seconds: float
+
+    @property
+    def paper(self) -> float:
+        return paper_protocol(self.periodic)
+
+    @property
+    def honest(self) -> float:
+        return self.final_wins / self.final_episodes
+
+
+def _dataset(config: SuccessBenchConfig, task: str) -> Path:
+    data = Path(config.workdir) / "data" / task
+    if not DemoDataset.is_dataset(data):
+        collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.demos, seed=0))
+    return data
+
+
+def _world_model(config: SuccessBenchConfig, task: str, data: Path) -> Path:
+    path = Path(config.workdir) / "world_models" / f"{task}.pt"
+    train_world_model(TrainWorldModelConfig(
+        data=str(data), out=str(path), model=config.world_model, steps=config.world_model_steps,
+        validate_every=config.world_model_steps, seed=0, progress=False,
+    ))  # resumes, or returns at once when the checkpoint is finished
+    return path
+
+
+def run_cell(config: SuccessBenchConfig, task: str, algo: str, seed: int, data: Path, world_model: Path) -> Cell:
+    """Train one policy (resuming if interrupted) with its periodic evaluations, then the final one."""
+    run = Path(config.workdir) / "runs" / f"{task}_{algo}_s{seed}"
+    started = time.perf_counter()
+    _, history = train_policy(TrainPolicyConfig(
+        data=str(data), out=str(run), policy=dataclasses.replace(config.policy, algo=algo),
+        world_model=str(world_model) if uses_imagination(algo) else None, steps=config.steps,
+        batch_size=config.batch_size, learning_rate=config.learning_rate,
+        eval_every=max(1, config.steps // config.evaluations), eval_episodes=config.eval_episodes,
+        eval_workers=config.workers, seed=seed, progress=False,
+    ))
+    train_seconds = time.perf_counter() - started
+    if config.final_episodes:
+        checkpoint = run / CHECKPOINT_NAME
+        _, payload = load_policy(checkpoint)
+        final = evaluate(functools.partial(load_torchrl_policy, checkpoint), task, config.final_episodes,
+                         seed=config.final_seed, env_kwargs=eval_env_kwargs(payload, task), workers=config.workers,
+                         progress=False)
+        wins, episodes = sum(final.successes), final.episodes
+    else:
+        wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes
+    return Cell(task, algo, seed, [point.success_rate for point in history], wins, episodes, train_seconds)
+
+
+def _cell_path(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> Path:
+    return Path(config.workdir) / "cells" / f"{task}_{algo}_s{seed}.json"
+
+
+def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
+    """Every (task, algo, seed) cell, finished ones read back from disk; prints the table."""
+    cells = []
+    for task in config.tasks:
+        data = _dataset(config, task)
+        world_model = _world_model(config, task, data) if any(map(uses_imagination, config.algos)) else None
+        for algo in config.algos:
+            for seed in config.seeds:
+                path = _cell_path(config, task, algo, seed)
+                if path.exists():
+                    cell = Cell(**json.loads(path.read_text()))
+                else:
+                    cell = run_cell(config, task, algo, seed, data, world_model)
+                    atomic_write_text(path, json.dumps(dataclasses.asdict(cell), indent=1))
+                print(f"{task} {algo} seed {seed}: paper {cell.paper:.0%} (evaluations {cell.periodic}), "
+                      f"final {cell.final_wins}/{cell.final_episodes}, trained in {cell.train_seconds:.0f} s",
+                      flush=True)
+                cells.append(cell)
+    print()
+    print(format_table(cells, config))
+    return cells
+
+
+def _mean(values: list[float]) -> float:
+    return statistics.fmean(values) if values else float("nan")
+
+
+def format_table(cells: list[Cell], config: SuccessBenchConfig) -> str:
+    """Markdown: per task and variant, paper protocol (mean over seeds of the top-5
+    periodic evaluations) and honest protocol (final checkpoints, episodes pooled over
+    seeds, 95 % Wilson interval); the last row averages the tasks."""
+    tasks = list(dict.fromkeys(cell.task for cell in cells))
+    algos = list(dict.fromkeys(cell.algo for cell in cells))
+    lines = [
+        f"Success (%), {config.demos} demos per task, seeds {', '.join(map(str, config.seeds))}, "
+        f"{config.steps} steps x batch {config.batch_size}, {config.evaluations} evaluation(s) of "
+        f"{config.eval_episodes} episodes during training, final checkpoint on "
+        f"{config.final_episodes or config.eval_episodes} episodes. Each entry: paper protocol / honest "
+        "protocol [95 % Wilson interval]; paper's Table IV (10 demos) where it has the figure.",
+        "",
+        "| task | " + " | ".join(algos) + " | paper MP1 / D2A |",
+        "| --- | " + " | ".join("---" for _ in algos) + " | --- |",
+    ]
+    paper_means: dict[str, list[float]] = {algo: [] for algo in algos}
+    honest_means: dict[str, list[float]] = {algo: [] for algo in algos}
+    for task in tasks:
+        entries = []
+        for algo in algos:
+            runs = [cell for cell in cells if cell.task == task and cell.algo == algo]
+            paper = _mean([cell.paper for cell in runs])
+            outcomes = [True] * sum(c.final_wins for c in runs) + [False] * sum(
+                c.final_episodes - c.final_wins for c in runs)
+            honest, low, high = honest_protocol(outcomes)
+            paper_means[algo].append(paper)
+            honest_means[algo].append(honest)
+            entries.append(f"{100 * paper:.0f} / {100 * honest:.0f} [{100 * low:.0f}-{100 * high:.0f}]")
+        reference = "{} / {}".format(*PAPER_TABLE_IV[task]) if task in PAPER_TABLE_IV else "-"
+        lines.append(f"| {task} | " + " | ".join(entries) + f" | {reference} |")
+    averages = [f"{100 * _mean(paper_means[a]):.1f} / {100 * _mean(honest_means[a]):.1f}" for a in algos]
+    lines.append("| mean | " + " | ".join(averages) + " | |")
+    return "\n".join(lines)

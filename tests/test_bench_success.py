@@ -1,0 +1,53 @@
+"""The success benchmark: its table against hand-computed figures, and a tiny resumable run."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import benchmarks.success as bench
+from benchmarks.success import Cell, SuccessBenchConfig, format_table
+from collectors.collect import CollectConfig, collect
+from d2a_agents.policy.agent import PolicyConfig
+from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
+
+
+def test_table_pools_seeds_and_quotes_the_paper():
+    cells = [
+        Cell("push", "mp1", 0, periodic=[0.1, 0.5, 0.3], final_wins=3, final_episodes=20, train_seconds=1.0),
+        Cell("push", "mp1", 1, periodic=[0.2, 0.4], final_wins=5, final_episodes=20, train_seconds=1.0),
+        Cell("hammer", "mp1", 0, periodic=[1.0], final_wins=20, final_episodes=20, train_seconds=1.0),
+    ]
+    # Top-5 of three and two evaluations is all of them: (0.9 / 3 + 0.6 / 2) / 2 = 0.3.
+    assert cells[0].paper == pytest.approx(0.3) and cells[1].paper == pytest.approx(0.3)
+    table = format_table(cells, SuccessBenchConfig(seeds=(0, 1)))
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in table.splitlines() if line.startswith("| ")}
+    # Honest: 8 wins out of 40 pooled episodes = 20 %; Wilson 95 % interval 10.5-34.8 %.
+    assert rows["push"] == "| push | 30 / 20 [10-35] | 74 / 85 |"
+    assert rows["hammer"] == "| hammer | 100 / 100 [84-100] | - |"
+    # Mean over tasks of the per-task figures: paper (30 + 100) / 2, honest (20 + 100) / 2.
+    assert rows["mean"] == "| mean | 65.0 / 60.0 | |"
+
+
+def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
+    evaluations = 2
+    env_kwargs = {"image_size": 48, "num_points": 128}
+    collect(CollectConfig(tasks=("reach",), out=str(tmp_path / "data" / "reach"), episodes=2, env_kwargs=env_kwargs,
+                          progress=False))
+    policy = PolicyConfig(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
+                          network=VelocityNetConfig(hidden=32, layers=2))
+    config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), demos=2, workdir=str(tmp_path), policy=policy,
+                                steps=4, batch_size=4, evaluations=evaluations, eval_episodes=1)
+    (cell,) = bench.run(config)
+    assert (cell.task, cell.algo, cell.seed) == ("reach", "mp1", 0)
+    assert len(cell.periodic) == evaluations and cell.final_episodes == 1
+    assert cell.final_wins == round(cell.periodic[-1])  # the last periodic evaluation is the final checkpoint's
+    stored = json.loads((tmp_path / "cells" / "reach_mp1_s0.json").read_text())
+    assert stored["periodic"] == cell.periodic
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("a finished cell was trained again")
+
+    monkeypatch.setattr(bench, "train_policy", no_training)
+    assert bench.run(config) == [cell]
