@@ -84,3 +84,12 @@ def test_imagination_variants_need_a_fitting_world_model(reach_data, tmp_path):
     train_policy(policy_config("mp1", reach_data, tmp_path / "run", steps=1))
     with pytest.raises(CheckpointError, match="another policy_config"):
         train_policy(policy_config("dp3", reach_data, tmp_path / "run", steps=2))
+
+
+def test_a_checkpoint_with_an_unreadable_policy_config_is_refused(reach_data, tmp_path):
+    train_policy(policy_config("mp1", reach_data, tmp_path, steps=1))
+    payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
+    del payload["policy_config"]["cfg_thresholds"]  # as written before that field existed
+    torch.save(payload, tmp_path / "old.pt")
+    with pytest.raises(CheckpointError, match="cannot read.*cfg_thresholds"):
+        load_policy(tmp_path / "old.pt")

@@ -94,9 +94,13 @@ def training_frames(
 def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, Any]]:
     """The policy of a checkpoint (EMA weights by default) and the checkpoint's metadata."""
     payload = load_checkpoint(path, CHECKPOINT_KIND)
+    try:
+        config = PolicyConfig.from_dict(payload["policy_config"])
+    except (KeyError, TypeError) as error:  # a field added or removed since the checkpoint was written
+        raise CheckpointError(f"{path} holds a policy configuration this version cannot read ({error!r}); "
+                              "train the policy again") from error
     normalizers = {key: Normalizer.from_state_dict(state) for key, state in payload["normalizers"].items()}
-    policy = Policy(PolicyConfig.from_dict(payload["policy_config"]), payload["action_dim"], payload["state_dim"],
-                    normalizers)
+    policy = Policy(config, payload["action_dim"], payload["state_dim"], normalizers)
     policy.load_state_dict(payload["ema" if ema else "model"])
     return policy.eval(), payload
 
