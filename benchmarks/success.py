@@ -174,19 +174,38 @@ def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
                 cells.append(cell)
     print()
     print(format_table(cells, config))
+    print(f"wrote {plot_success(cells, Path(config.workdir) / 'success.png')}")
     return cells
 
 
-def _mean(values: list[float]) -> float:
-    return statistics.fmean(values) if values else float("nan")
+@dataclass(frozen=True)
+class Summary:
+    """One (task, algo) over its seeds: the paper protocol's mean over seeds, and the honest
+    protocol on the final checkpoints' episodes pooled over seeds, with its 95 % interval."""
+
+    paper: float
+    honest: float
+    low: float
+    high: float
+
+
+def summarize(cells: list[Cell]) -> dict[tuple[str, str], Summary]:
+    """Per (task, algo), in the order the cells came."""
+    summaries = {}
+    for key in dict.fromkeys((cell.task, cell.algo) for cell in cells):
+        runs = [cell for cell in cells if (cell.task, cell.algo) == key]
+        wins, episodes = sum(c.final_wins for c in runs), sum(c.final_episodes for c in runs)
+        honest, low, high = honest_protocol([True] * wins + [False] * (episodes - wins))
+        summaries[key] = Summary(statistics.fmean(cell.paper for cell in runs), honest, low, high)
+    return summaries
 
 
 def format_table(cells: list[Cell], config: SuccessBenchConfig) -> str:
-    """Markdown: per task and variant, paper protocol (mean over seeds of the top-5
-    periodic evaluations) and honest protocol (final checkpoints, episodes pooled over
-    seeds, 95 % Wilson interval); the last row averages the tasks."""
-    tasks = list(dict.fromkeys(cell.task for cell in cells))
-    algos = list(dict.fromkeys(cell.algo for cell in cells))
+    """Markdown: per task and variant, paper protocol / honest protocol [95 % interval]; the
+    last row averages the tasks."""
+    summaries = summarize(cells)
+    tasks = list(dict.fromkeys(task for task, _ in summaries))
+    algos = list(dict.fromkeys(algo for _, algo in summaries))
     lines = [
         f"Success (%), {config.demos} demos per task, seeds {', '.join(map(str, config.seeds))}, "
         f"{config.steps} steps x batch {config.batch_size}, {config.evaluations} evaluation(s) of "
@@ -197,21 +216,50 @@ def format_table(cells: list[Cell], config: SuccessBenchConfig) -> str:
         "| task | " + " | ".join(algos) + " | paper MP1 / D2A |",
         "| --- | " + " | ".join("---" for _ in algos) + " | --- |",
     ]
-    paper_means: dict[str, list[float]] = {algo: [] for algo in algos}
-    honest_means: dict[str, list[float]] = {algo: [] for algo in algos}
     for task in tasks:
         entries = []
         for algo in algos:
-            runs = [cell for cell in cells if cell.task == task and cell.algo == algo]
-            paper = _mean([cell.paper for cell in runs])
-            outcomes = [True] * sum(c.final_wins for c in runs) + [False] * sum(
-                c.final_episodes - c.final_wins for c in runs)
-            honest, low, high = honest_protocol(outcomes)
-            paper_means[algo].append(paper)
-            honest_means[algo].append(honest)
-            entries.append(f"{100 * paper:.0f} / {100 * honest:.0f} [{100 * low:.0f}-{100 * high:.0f}]")
+            row = summaries[task, algo]
+            entries.append(f"{100 * row.paper:.0f} / {100 * row.honest:.0f} [{100 * row.low:.0f}-{100 * row.high:.0f}]")
         reference = "{} / {}".format(*PAPER_TABLE_IV[task]) if task in PAPER_TABLE_IV else "-"
         lines.append(f"| {task} | " + " | ".join(entries) + f" | {reference} |")
-    averages = [f"{100 * _mean(paper_means[a]):.1f} / {100 * _mean(honest_means[a]):.1f}" for a in algos]
+    averages = []
+    for algo in algos:
+        rows = [summaries[task, algo] for task in tasks]
+        averages.append(f"{100 * statistics.fmean(r.paper for r in rows):.1f} / "
+                        f"{100 * statistics.fmean(r.honest for r in rows):.1f}")
     lines.append("| mean | " + " | ".join(averages) + " | |")
     return "\n".join(lines)
+
+
+def plot_success(cells: list[Cell], path: str | Path) -> Path:
+    """Grouped bars per task, one per variant: honest success with its 95 % interval, the
+    paper protocol as a marker."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    summaries = summarize(cells)
+    tasks = list(dict.fromkeys(task for task, _ in summaries))
+    algos = list(dict.fromkeys(algo for _, algo in summaries))
+    width = 0.8 / len(algos)
+    fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(tasks), 3.8))
+    for k, algo in enumerate(algos):
+        xs = [i + (k - (len(algos) - 1) / 2) * width for i in range(len(tasks))]
+        rows = [summaries[task, algo] for task in tasks]
+        honest = [100 * r.honest for r in rows]
+        errors = [[100 * (r.honest - r.low) for r in rows], [100 * (r.high - r.honest) for r in rows]]
+        bars = ax.bar(xs, honest, width, yerr=errors, capsize=2, label=algo)
+        ax.plot(xs, [100 * r.paper for r in rows], "v", color=bars.patches[0].get_facecolor(), markeredgecolor="k")
+    ax.set_xticks(range(len(tasks)), tasks)
+    ax.set_ylim(0, 100)
+    ax.set_ylabel("success %")
+    ax.set_title("final checkpoint (bars, 95 % interval); paper protocol (triangles)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

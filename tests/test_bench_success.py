@@ -45,6 +45,7 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
     assert cell.final_wins == round(cell.periodic[-1])  # the last periodic evaluation is the final checkpoint's
     stored = json.loads((tmp_path / "cells" / "reach_mp1_s0.json").read_text())
     assert stored["periodic"] == cell.periodic
+    assert (tmp_path / "success.png").stat().st_size > 0
 
     def no_training(*args, **kwargs):
         raise AssertionError("a finished cell was trained again")
