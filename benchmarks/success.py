@@ -30,9 +30,11 @@ from collectors.collect import CollectConfig, collect
 from collectors.evaluation import evaluate, honest_protocol, paper_protocol
 from collectors.storage import DemoDataset
 from d2a.atomic import atomic_write_text
-from d2a_agents.policy.agent import CPU_POLICY_PRESET, PolicyConfig, uses_imagination
+from d2a_agents.policy.agent import uses_imagination
 from d2a_agents.policy.train import (
     CHECKPOINT_NAME,
+    POLICY_PRESETS,
+    PolicyPreset,
     TrainPolicyConfig,
     eval_env_kwargs,
     load_policy,
@@ -55,10 +57,7 @@ class SuccessBenchConfig:
     seeds: tuple[int, ...] = (0,)
     demos: int = 10
     workdir: str = "outputs/bench_success"
-    policy: PolicyConfig = CPU_POLICY_PRESET
-    steps: int = 1500
-    batch_size: int = 32
-    learning_rate: float = 1e-3
+    policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget of every variant
     evaluations: int = 1  # periodic evaluations during training, the last one at the final step
     eval_episodes: int = 20  # per periodic evaluation (the paper: 20)
     final_episodes: int = 0  # extra evaluation of the final checkpoint; 0: reuse the last periodic one
@@ -71,12 +70,11 @@ class SuccessBenchConfig:
 
 PRESETS: dict[str, SuccessBenchConfig] = {
     "cpu": SuccessBenchConfig(),
-    # Section IV of the paper: 1024 points, batch 128, 3000 epochs of the 2000 demo steps
-    # (~47k steps), 20 episodes every 200 epochs (15 evaluations), 3 seeds. It gives no
-    # world-model budget; 20k steps of batch 4 is our choice.
+    # Section IV of the paper: 20 episodes every 200 of 3000 epochs (15 evaluations), 3 seeds.
+    # It gives no world-model budget; 20k steps of batch 4 is our choice.
     "paper": SuccessBenchConfig(
-        seeds=(0, 1, 2), policy=PolicyConfig(num_points=1024), steps=47_000, batch_size=128, learning_rate=1e-4,
-        evaluations=15, final_episodes=100, world_model=WorldModelConfig(), world_model_steps=20_000,
+        seeds=(0, 1, 2), policy=POLICY_PRESETS["paper"], evaluations=15, final_episodes=100,
+        world_model=WorldModelConfig(), world_model_steps=20_000,
     ),
 }
 
@@ -129,11 +127,12 @@ def run_cell(config: SuccessBenchConfig, task: str, algo: str, seed: int, data: 
     """Train one policy (resuming if interrupted) with its periodic evaluations, then the final one."""
     run = Path(config.workdir) / "runs" / f"{task}_{algo}_s{seed}"
     started = time.perf_counter()
+    preset = config.policy
     _, history = train_policy(TrainPolicyConfig(
-        data=str(data), out=str(run), policy=dataclasses.replace(config.policy, algo=algo),
-        world_model=str(world_model) if uses_imagination(algo) else None, steps=config.steps,
-        batch_size=config.batch_size, learning_rate=config.learning_rate,
-        eval_every=max(1, config.steps // config.evaluations), eval_episodes=config.eval_episodes,
+        data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=algo),
+        world_model=str(world_model) if uses_imagination(algo) else None, steps=preset.steps,
+        batch_size=preset.batch_size, learning_rate=preset.learning_rate,
+        eval_every=max(1, preset.steps // config.evaluations), eval_episodes=config.eval_episodes,
         eval_workers=config.workers, seed=seed, progress=False,
     ))
     train_seconds = time.perf_counter() - started
@@ -208,7 +207,7 @@ def format_table(cells: list[Cell], config: SuccessBenchConfig) -> str:
     algos = list(dict.fromkeys(algo for _, algo in summaries))
     lines = [
         f"Success (%), {config.demos} demos per task, seeds {', '.join(map(str, config.seeds))}, "
-        f"{config.steps} steps x batch {config.batch_size}, {config.evaluations} evaluation(s) of "
+        f"{config.policy.steps} steps x batch {config.policy.batch_size}, {config.evaluations} evaluation(s) of "
         f"{config.eval_episodes} episodes during training, final checkpoint on "
         f"{config.final_episodes or config.eval_episodes} episodes. Each entry: paper protocol / honest "
         "protocol [95 % Wilson interval]; paper's Table IV (10 demos) where it has the figure.",

@@ -108,14 +108,16 @@ def cmd_viz_imagine(args: argparse.Namespace) -> None:
 
 
 def cmd_train_policy(args: argparse.Namespace) -> None:
-    from d2a_agents.policy.agent import PolicyConfig
-    from d2a_agents.policy.train import TrainPolicyConfig, train_policy
+    from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 
-    policy = PolicyConfig(algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
-                          n_action_steps=args.n_action_steps, num_points=args.num_points)
+    preset = POLICY_PRESETS[args.preset]
+    changes = dict(algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
+                   n_action_steps=args.n_action_steps, num_points=args.num_points)
+    policy = dataclasses.replace(preset.policy, **{k: v for k, v in changes.items() if v is not None})
     config = TrainPolicyConfig(
-        data=args.data, out=args.out, policy=policy, world_model=args.world_model, steps=args.steps,
-        batch_size=args.batch_size, learning_rate=args.lr, eval_every=args.eval_every,
+        data=args.data, out=args.out, policy=policy, world_model=args.world_model, steps=args.steps or preset.steps,
+        batch_size=args.batch_size or preset.batch_size, learning_rate=args.lr or preset.learning_rate,
+        eval_every=args.eval_every,
         eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
     )
     _, history = train_policy(config)
@@ -171,10 +173,10 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
     from benchmarks.success import PRESETS, run
 
     base = PRESETS[args.preset]
+    policy = dataclasses.replace(base.policy, steps=args.steps) if args.steps else base.policy
     changes = dict(tasks=tuple(args.task) if args.task else None, algos=tuple(args.algo) if args.algo else None,
-                   seeds=tuple(args.seed) if args.seed else None, steps=args.steps, workdir=args.workdir,
-                   workers=args.workers)
-    run(dataclasses.replace(base, **{k: v for k, v in changes.items() if v is not None}))
+                   seeds=tuple(args.seed) if args.seed else None, workdir=args.workdir, workers=args.workers)
+    run(dataclasses.replace(base, policy=policy, **{k: v for k, v in changes.items() if v is not None}))
 
 
 def cmd_demo(args: argparse.Namespace) -> None:
@@ -251,13 +253,17 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--algo", choices=("d2a", "d2a-no-cfg", "d2a-no-imagination", "mp1", "dp3"),
                               default="d2a")
     train_policy.add_argument("--world-model", default=None, help="checkpoint of d2a train-wm (d2a variants)")
-    train_policy.add_argument("--steps", type=int, default=3000)
-    train_policy.add_argument("--batch-size", type=int, default=64)
-    train_policy.add_argument("--lr", type=float, default=1e-4)
-    train_policy.add_argument("--horizon", type=int, default=4)
-    train_policy.add_argument("--n-obs-steps", type=int, default=2)
-    train_policy.add_argument("--n-action-steps", type=int, default=4)
-    train_policy.add_argument("--num-points", type=int, default=512, help="points per cloud fed to the encoder")
+    train_policy.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
+                              help="networks and budget: cpu (narrow, 4000 steps of 32, lr 1e-3) or paper "
+                                   "(1024 points, 47k steps of 128, lr 1e-4; GPU work)")
+    train_policy.add_argument("--steps", type=int, default=None, help="default: the preset's")
+    train_policy.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
+    train_policy.add_argument("--lr", type=float, default=None, help="default: the preset's")
+    train_policy.add_argument("--horizon", type=int, default=None, help="action chunk length (default 4)")
+    train_policy.add_argument("--n-obs-steps", type=int, default=None, help="default 2")
+    train_policy.add_argument("--n-action-steps", type=int, default=None, help="default 4")
+    train_policy.add_argument("--num-points", type=int, default=None,
+                              help="points per cloud fed to the encoder (default: the preset's)")
     train_policy.add_argument("--eval-every", type=int, default=0, help="0: evaluate at the end only")
     train_policy.add_argument("--eval-episodes", type=int, default=20)
     train_policy.add_argument("--workers", type=int, default=1)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import matplotlib
@@ -21,11 +21,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
 from collectors.collect import CollectConfig, collect  # noqa: E402
-from collectors.evaluation import evaluate  # noqa: E402
+from collectors.evaluation import EvaluationResult, evaluate  # noqa: E402
 from d2a_agents.checkpoint import load_checkpoint  # noqa: E402
-from d2a_agents.policy.agent import CPU_POLICY_PRESET, PolicyConfig  # noqa: E402
 from d2a_agents.policy.train import (  # noqa: E402
     CHECKPOINT_NAME,
+    POLICY_PRESETS,
+    PolicyPreset,
     TrainPolicyConfig,
     eval_env_kwargs,
     load_torchrl_policy,
@@ -46,18 +47,17 @@ class DemoConfig:
     seed: int = 0
     world_model: WorldModelConfig = WorldModelConfig(resolution=(32, 32, 8))
     world_model_steps: int = 300
-    policy: PolicyConfig = CPU_POLICY_PRESET
-    policy_steps: int = 4000
-    batch_size: int = 32
-    # 10x DP3's 1e-4: after 1500 steps on Hammer, one-step samples on the training windows were off
-    # by a normalized MSE of 0.14 at 1e-4 (a constant mean action: 0.21) and 0.045 at 1e-3.
-    learning_rate: float = 1e-3
+    policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget
     eval_episodes: int = 20
     eval_workers: int = 1
+    env_kwargs: dict[str, object] = field(default_factory=dict)  # gym.make options: image_size, num_points...
 
 
-def plot_training_curves(policy_checkpoint: Path, world_model_checkpoint: Path, out: Path) -> Path:
-    """Policy loss (and evaluations) and the world model's held-out IoU, side by side."""
+def plot_training_curves(
+    policy_checkpoint: Path, world_model_checkpoint: Path, out: Path, final: EvaluationResult | None = None
+) -> Path:
+    """Policy loss (with its evaluations, and ``final`` at the last step) and the world
+    model's held-out IoU, side by side."""
     policy, world_model = load_checkpoint(policy_checkpoint, "policy"), load_checkpoint(world_model_checkpoint,
                                                                                          "world_model")
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
@@ -69,8 +69,11 @@ def plot_training_curves(policy_checkpoint: Path, world_model_checkpoint: Path, 
     left.set_yscale("log")
     left.set_xlabel("policy step")
     left.set_title(f"{policy['policy_config']['algo']} policy")
-    for point in policy["history"]:
-        left.annotate(f"success {point['success_rate']:.0%}", (point["step"], smooth[-1].item()))
+    points = [(point["step"], point["success_rate"], point["episodes"]) for point in policy["history"]]
+    if final is not None:
+        points.append((steps[-1], final.success_rate, final.episodes))
+    for step, rate, episodes in points:
+        left.annotate(f"success {rate:.0%} of {episodes}", (step, smooth[-1].item()), ha="right")
     left.legend()
     history = world_model["history"]
     right.plot([h["step"] for h in history], [h["full_iou"] for h in history], "o-", label="triplane full-grid IoU")
@@ -92,25 +95,27 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict[str, float]:
     data, world_model = out / "data", out / "world_model.pt"
     print(f"1/4 collecting {config.episodes} {config.task} demonstrations")
     collect(CollectConfig(tasks=(config.task,), out=str(data), episodes=config.episodes, seed=config.seed,
-                          append=True))
+                          env_kwargs=config.env_kwargs, append=True))
     print("2/4 training the world model")
     _, wm_history = train_world_model(TrainWorldModelConfig(
         data=str(data), out=str(world_model), model=config.world_model, steps=config.world_model_steps,
         validate_every=max(1, config.world_model_steps // 3), validation_stride=2, seed=config.seed,
     ))
     print("3/4 training the policy")
-    run = out / config.policy.algo
+    preset = config.policy
+    run = out / preset.policy.algo
     train_policy(TrainPolicyConfig(
-        data=str(data), out=str(run), policy=config.policy, world_model=str(world_model), steps=config.policy_steps,
-        batch_size=config.batch_size, learning_rate=config.learning_rate, eval_episodes=2, seed=config.seed,
+        data=str(data), out=str(run), policy=preset.policy, world_model=str(world_model), steps=preset.steps,
+        batch_size=preset.batch_size, learning_rate=preset.learning_rate, eval_episodes=0, seed=config.seed,
     ))
     print(f"4/4 evaluating on {config.eval_episodes} new layouts")
     payload = load_checkpoint(run / CHECKPOINT_NAME, "policy")
     result = evaluate(functools.partial(load_torchrl_policy, run / CHECKPOINT_NAME), config.task, config.eval_episodes,
                       seed=100_000, env_kwargs=eval_env_kwargs(payload, payload["tasks"][0]),
                       workers=config.eval_workers)
-    picture = plot_task_imagination(world_model, config.task, out / "imagination.png", seed=config.seed)
-    curves = plot_training_curves(run / CHECKPOINT_NAME, world_model, out / "training_curves.png")
+    picture = plot_task_imagination(world_model, config.task, out / "imagination.png", seed=config.seed,
+                                    **config.env_kwargs)
+    curves = plot_training_curves(run / CHECKPOINT_NAME, world_model, out / "training_curves.png", result)
     last = wm_history[-1]
     print(result.summary())
     print(f"world model, held-out: full-grid IoU {last.full_iou:.3f} (persistence {last.persistence_full_iou:.3f}), "
@@ -119,6 +124,9 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict[str, float]:
     return {"success_rate": result.success_rate, "full_iou": last.full_iou, "dynamic_iou": last.dynamic_iou}
 
 
-def demo_config(**changes: object) -> DemoConfig:
+def demo_config(policy_steps: int | None = None, **changes: object) -> DemoConfig:
     """The default demo with some fields changed (``None`` values are ignored)."""
-    return dataclasses.replace(DemoConfig(), **{k: v for k, v in changes.items() if v is not None})
+    config = dataclasses.replace(DemoConfig(), **{k: v for k, v in changes.items() if v is not None})
+    if policy_steps is not None:
+        config = dataclasses.replace(config, policy=dataclasses.replace(config.policy, steps=policy_steps))
+    return config

@@ -11,6 +11,7 @@ from benchmarks.success import Cell, SuccessBenchConfig, format_table
 from collectors.collect import CollectConfig, collect
 from d2a_agents.policy.agent import PolicyConfig
 from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
+from d2a_agents.policy.train import PolicyPreset
 
 
 def test_table_pools_seeds_and_quotes_the_paper():
@@ -37,8 +38,9 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
                           progress=False))
     policy = PolicyConfig(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
                           network=VelocityNetConfig(hidden=32, layers=2))
-    config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), demos=2, workdir=str(tmp_path), policy=policy,
-                                steps=4, batch_size=4, evaluations=evaluations, eval_episodes=1)
+    config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), demos=2, workdir=str(tmp_path),
+                                policy=PolicyPreset(policy, steps=4, batch_size=4, learning_rate=1e-3),
+                                evaluations=evaluations, eval_episodes=1)
     (cell,) = bench.run(config)
     assert (cell.task, cell.algo, cell.seed) == ("reach", "mp1", 0)
     assert len(cell.periodic) == evaluations and cell.final_episodes == 1

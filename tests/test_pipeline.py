@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -64,6 +66,12 @@ def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_mode
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
     assert eval_env_kwargs(payload, "reach")["world_model"] == world_model  # acts with imagination
     assert history[0].episodes == 1
+
+
+def test_zero_evaluation_episodes_train_without_evaluating(reach_data, tmp_path):
+    config = policy_config("mp1", reach_data, tmp_path)
+    _, history = train_policy(dataclasses.replace(config, eval_episodes=0))
+    assert history == [] and load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["step"] == 3
 
 
 def test_training_resumes_from_its_checkpoint(reach_data, tmp_path):

@@ -1,0 +1,52 @@
+"""The command line builds the configurations its help promises (no training runs here)."""
+
+from __future__ import annotations
+
+import pytest
+
+import benchmarks.success
+import d2a_agents.policy.train
+from d2a.cli import main
+
+
+@pytest.fixture
+def captured(monkeypatch) -> dict[str, object]:
+    """The configuration the last command passed on, instead of running it."""
+    seen: dict[str, object] = {}
+
+    def train_policy(config):
+        seen["config"] = config
+        return None, []
+
+    def run(config):
+        seen["config"] = config
+
+    monkeypatch.setattr(d2a_agents.policy.train, "train_policy", train_policy)
+    monkeypatch.setattr(benchmarks.success, "run", run)
+    return seen
+
+
+def test_train_policy_defaults_to_the_cpu_preset_and_flags_override_it(captured):
+    main(["train-policy", "--data", "d", "--out", "o", "--algo", "mp1", "--steps", "7"])
+    config = captured["config"]
+    assert (config.steps, config.batch_size, config.learning_rate) == (7, 32, 1e-3)
+    assert (config.policy.algo, config.policy.num_points, config.policy.network.hidden) == ("mp1", 256, 128)
+    assert not config.policy.encoder.use_imagination  # the algo decides, whatever the preset said
+
+
+def test_train_policy_paper_preset(captured):
+    main(["train-policy", "--data", "d", "--out", "o", "--preset", "paper", "--num-points", "512"])
+    config = captured["config"]
+    assert (config.steps, config.batch_size, config.learning_rate) == (47_000, 128, 1e-4)
+    assert (config.policy.algo, config.policy.num_points, config.policy.encoder.point_widths) == ("d2a", 512,
+                                                                                                  (64, 128, 256))
+
+
+def test_bench_success_options(captured):
+    main(["bench", "success", "--task", "push", "--algo", "mp1", "--algo", "dp3", "--seed", "1", "--steps", "9"])
+    config = captured["config"]
+    assert (config.tasks, config.algos, config.seeds, config.policy.steps) == (("push",), ("mp1", "dp3"), (1,), 9)
+    assert config.policy.batch_size == 32 and config.evaluations == 1
+    main(["bench", "success", "--preset", "paper"])
+    paper = captured["config"]
+    assert paper.seeds == (0, 1, 2) and paper.evaluations == 15 and paper.final_episodes == 100
