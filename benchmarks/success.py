@@ -118,7 +118,7 @@ def _world_model(config: SuccessBenchConfig, task: str, data: Path) -> Path:
     path = Path(config.workdir) / "world_models" / f"{task}.pt"
     train_world_model(TrainWorldModelConfig(
         data=str(data), out=str(path), model=config.world_model, steps=config.world_model_steps,
-        validate_every=config.world_model_steps, seed=0, progress=False,
+        validate_every=config.world_model_steps, seed=0,
     ))  # resumes, or returns at once when the checkpoint is finished
     return path
 
@@ -133,15 +133,14 @@ def run_cell(config: SuccessBenchConfig, task: str, algo: str, seed: int, data: 
         world_model=str(world_model) if uses_imagination(algo) else None, steps=preset.steps,
         batch_size=preset.batch_size, learning_rate=preset.learning_rate,
         eval_every=max(1, preset.steps // config.evaluations), eval_episodes=config.eval_episodes,
-        eval_workers=config.workers, seed=seed, progress=False,
+        eval_workers=config.workers, seed=seed,
     ))
     train_seconds = time.perf_counter() - started
     if config.final_episodes:
         checkpoint = run / CHECKPOINT_NAME
         _, payload = load_policy(checkpoint)
         final = evaluate(functools.partial(load_torchrl_policy, checkpoint), task, config.final_episodes,
-                         seed=config.final_seed, env_kwargs=eval_env_kwargs(payload, task), workers=config.workers,
-                         progress=False)
+                         seed=config.final_seed, env_kwargs=eval_env_kwargs(payload, task), workers=config.workers)
         wins, episodes = sum(final.successes), final.episodes
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes
