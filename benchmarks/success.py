@@ -19,7 +19,6 @@ where the two protocols coincide).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import statistics
 import time
@@ -27,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from collectors.collect import CollectConfig, collect
-from collectors.evaluation import evaluate, honest_protocol, paper_protocol
+from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.storage import DemoDataset
 from d2a.atomic import atomic_write_text
 from d2a_agents.policy.agent import uses_imagination
@@ -36,9 +35,7 @@ from d2a_agents.policy.train import (
     POLICY_PRESETS,
     PolicyPreset,
     TrainPolicyConfig,
-    eval_env_kwargs,
-    load_policy,
-    load_torchrl_policy,
+    evaluate_checkpoint,
     train_policy,
 )
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
@@ -136,10 +133,8 @@ def run_cell(config: SuccessBenchConfig, task: str, algo: str, seed: int, data: 
     ))
     train_seconds = time.perf_counter() - started
     if config.final_episodes:
-        checkpoint = run / CHECKPOINT_NAME
-        _, payload = load_policy(checkpoint)
-        final = evaluate(functools.partial(load_torchrl_policy, checkpoint), task, config.final_episodes,
-                         seed=config.final_seed, env_kwargs=eval_env_kwargs(payload, task), workers=config.workers)
+        final = evaluate_checkpoint(run / CHECKPOINT_NAME, task, config.final_episodes, config.final_seed,
+                                    workers=config.workers)
         wins, episodes = sum(final.successes), final.episodes
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes

@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 
 def _parse_box(text: str | None) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
@@ -28,6 +29,11 @@ def _add_env_options(parser: argparse.ArgumentParser, several_tasks: bool = Fals
     parser.add_argument("--image-size", type=int, default=None)
     parser.add_argument("--num-points", type=int, default=None)
     parser.add_argument("--crop-box", type=_parse_box, default=None, help="x0,y0,z0,x1,y1,z1 in metres")
+
+
+def _replace_given(instance: Any, **changes: object) -> Any:
+    """``dataclasses.replace`` with the options the user gave (``None``: keep the default)."""
+    return dataclasses.replace(instance, **{k: v for k, v in changes.items() if v is not None})
 
 
 def _env_kwargs(args: argparse.Namespace) -> dict[str, object]:
@@ -84,9 +90,9 @@ def cmd_train_wm(args: argparse.Namespace) -> None:
     from d2a_agents.world_model.triplane import CPU_PRESET, WorldModelConfig
 
     base = CPU_PRESET if args.preset == "cpu" else WorldModelConfig()
-    changes = dict(horizon=args.horizon, action_history=args.history, channels=args.channels,
-                   feature_mode=args.feature_mode, resolution=tuple(args.resolution) if args.resolution else None)
-    model = dataclasses.replace(base, **{k: v for k, v in changes.items() if v is not None})
+    model = _replace_given(base, horizon=args.horizon, action_history=args.history, channels=args.channels,
+                           feature_mode=args.feature_mode,
+                           resolution=tuple(args.resolution) if args.resolution else None)
     config = TrainWorldModelConfig(
         data=args.data, out=args.out, model=model, steps=args.steps, batch_size=args.batch_size,
         learning_rate=args.lr, queries=args.queries, validate_every=args.validate_every, seed=args.seed,
@@ -110,14 +116,13 @@ def cmd_viz_imagine(args: argparse.Namespace) -> None:
 def cmd_train_policy(args: argparse.Namespace) -> None:
     from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 
-    preset = POLICY_PRESETS[args.preset]
-    changes = dict(algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
-                   n_action_steps=args.n_action_steps, num_points=args.num_points)
-    policy = dataclasses.replace(preset.policy, **{k: v for k, v in changes.items() if v is not None})
+    preset = _replace_given(POLICY_PRESETS[args.preset], steps=args.steps, batch_size=args.batch_size,
+                            learning_rate=args.lr)
+    policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
+                            n_action_steps=args.n_action_steps, num_points=args.num_points)
     config = TrainPolicyConfig(
-        data=args.data, out=args.out, policy=policy, world_model=args.world_model, steps=args.steps or preset.steps,
-        batch_size=args.batch_size or preset.batch_size, learning_rate=args.lr or preset.learning_rate,
-        eval_every=args.eval_every,
+        data=args.data, out=args.out, policy=policy, world_model=args.world_model, steps=preset.steps,
+        batch_size=preset.batch_size, learning_rate=preset.learning_rate, eval_every=args.eval_every,
         eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
     )
     _, history = train_policy(config)
@@ -126,24 +131,18 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
-    import functools
-
-    import d2a_envs
-    from collectors.evaluation import evaluate
-
     if args.policy == "expert":
+        import functools
+
+        from collectors.evaluation import evaluate
         from collectors.experts import ScriptedExpert
 
-        factory, env_kwargs = functools.partial(ScriptedExpert, args.task), _env_kwargs(args)
+        result = evaluate(functools.partial(ScriptedExpert, args.task), args.task, args.episodes, args.seed,
+                          env_kwargs=_env_kwargs(args), workers=args.workers)
     else:
-        from d2a_agents.policy.train import eval_env_kwargs, load_policy, load_torchrl_policy
+        from d2a_agents.policy.train import evaluate_checkpoint
 
-        _, payload = load_policy(args.policy)
-        task = d2a_envs.get_task(args.task).name
-        if task not in payload["env_kwargs"]:
-            raise ValueError(f"{args.policy} was trained on {payload['tasks']}, not on {task}")
-        factory, env_kwargs = functools.partial(load_torchrl_policy, args.policy), eval_env_kwargs(payload, task)
-    result = evaluate(factory, args.task, args.episodes, args.seed, env_kwargs=env_kwargs, workers=args.workers)
+        result = evaluate_checkpoint(args.policy, args.task, args.episodes, args.seed, workers=args.workers)
     print(result.summary())
 
 
@@ -173,18 +172,21 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
     from benchmarks.success import PRESETS, run
 
     base = PRESETS[args.preset]
-    policy = dataclasses.replace(base.policy, steps=args.steps) if args.steps else base.policy
-    changes = dict(tasks=tuple(args.task) if args.task else None, algos=tuple(args.algo) if args.algo else None,
-                   seeds=tuple(args.seed) if args.seed else None, workdir=args.workdir, workers=args.workers)
-    run(dataclasses.replace(base, policy=policy, **{k: v for k, v in changes.items() if v is not None}))
+    run(_replace_given(
+        base, policy=_replace_given(base.policy, steps=args.steps), tasks=tuple(args.task) if args.task else None,
+        algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
+        workdir=args.workdir, workers=args.workers,
+    ))
 
 
 def cmd_demo(args: argparse.Namespace) -> None:
-    from d2a.demo import demo_config, run_demo
+    from d2a.demo import DemoConfig, run_demo
 
-    run_demo(demo_config(
-        task=args.task, out=args.out_dir, episodes=args.episodes, world_model_steps=args.wm_steps,
-        policy_steps=args.policy_steps, eval_episodes=args.eval_episodes, seed=args.seed,
+    base = DemoConfig()
+    run_demo(_replace_given(
+        base, task=args.task, out=args.out_dir, episodes=args.episodes, world_model_steps=args.wm_steps,
+        policy=_replace_given(base.policy, steps=args.policy_steps), eval_episodes=args.eval_episodes,
+        seed=args.seed,
     ))
 
 

@@ -9,8 +9,6 @@ encoder, narrow networks) and training length against the paper's GPU settings.
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,15 +19,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
 from collectors.collect import CollectConfig, collect  # noqa: E402
-from collectors.evaluation import EvaluationResult, evaluate  # noqa: E402
+from collectors.evaluation import EvaluationResult  # noqa: E402
 from d2a_agents.checkpoint import load_checkpoint  # noqa: E402
 from d2a_agents.policy.train import (  # noqa: E402
     CHECKPOINT_NAME,
     POLICY_PRESETS,
     PolicyPreset,
     TrainPolicyConfig,
-    eval_env_kwargs,
-    load_torchrl_policy,
+    evaluate_checkpoint,
     train_policy,
 )
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model  # noqa: E402
@@ -109,10 +106,8 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict[str, float]:
         batch_size=preset.batch_size, learning_rate=preset.learning_rate, eval_episodes=0, seed=config.seed,
     ))
     print(f"4/4 evaluating on {config.eval_episodes} new layouts")
-    payload = load_checkpoint(run / CHECKPOINT_NAME, "policy")
-    result = evaluate(functools.partial(load_torchrl_policy, run / CHECKPOINT_NAME), config.task, config.eval_episodes,
-                      seed=100_000, env_kwargs=eval_env_kwargs(payload, payload["tasks"][0]),
-                      workers=config.eval_workers)
+    result = evaluate_checkpoint(run / CHECKPOINT_NAME, config.task, config.eval_episodes, seed=100_000,
+                                 workers=config.eval_workers)
     picture = plot_task_imagination(world_model, config.task, out / "imagination.png", seed=config.seed,
                                     **config.env_kwargs)
     curves = plot_training_curves(run / CHECKPOINT_NAME, world_model, out / "training_curves.png", result)
@@ -123,10 +118,3 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict[str, float]:
     print(f"wrote {picture} and {curves}")
     return {"success_rate": result.success_rate, "full_iou": last.full_iou, "dynamic_iou": last.dynamic_iou}
 
-
-def demo_config(policy_steps: int | None = None, **changes: object) -> DemoConfig:
-    """The default demo with some fields changed (``None`` values are ignored)."""
-    config = dataclasses.replace(DemoConfig(), **{k: v for k, v in changes.items() if v is not None})
-    if policy_steps is not None:
-        config = dataclasses.replace(config, policy=dataclasses.replace(config.policy, steps=policy_steps))
-    return config

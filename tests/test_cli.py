@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 import benchmarks.success
+import d2a.demo
 import d2a_agents.policy.train
 from d2a.cli import main
 
@@ -23,6 +24,7 @@ def captured(monkeypatch) -> dict[str, object]:
 
     monkeypatch.setattr(d2a_agents.policy.train, "train_policy", train_policy)
     monkeypatch.setattr(benchmarks.success, "run", run)
+    monkeypatch.setattr(d2a.demo, "run_demo", run)
     return seen
 
 
@@ -50,3 +52,10 @@ def test_bench_success_options(captured):
     main(["bench", "success", "--preset", "paper"])
     paper = captured["config"]
     assert paper.seeds == (0, 1, 2) and paper.evaluations == 15 and paper.final_episodes == 100
+
+
+def test_demo_options_change_only_what_they_name(captured):
+    main(["demo", "--task", "push", "--policy-steps", "5"])
+    config = captured["config"]
+    assert (config.task, config.policy.steps, config.policy.batch_size, config.episodes) == ("push", 5, 32, 10)
+    assert config.policy.policy == d2a.demo.DemoConfig().policy.policy

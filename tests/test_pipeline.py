@@ -16,6 +16,7 @@ from d2a_agents.policy.train import (
     CHECKPOINT_NAME,
     TrainPolicyConfig,
     eval_env_kwargs,
+    evaluate_checkpoint,
     load_policy,
     load_torchrl_policy,
     train_policy,
@@ -58,6 +59,8 @@ def test_collect_train_evaluate_without_imagination(algo, reach_data, tmp_path):
     result = evaluate(lambda: load_torchrl_policy(tmp_path / CHECKPOINT_NAME), "reach", 1, seed=5,
                       env_kwargs=eval_env_kwargs(payload, "reach"), progress=False)
     assert len(result.successes) == 1 and len(result.returns) == 1
+    with pytest.raises(ValueError, match="trained on"):
+        evaluate_checkpoint(tmp_path / CHECKPOINT_NAME, "hammer", 1, seed=0)
 
 
 def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_model, tmp_path):

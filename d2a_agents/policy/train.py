@@ -22,6 +22,7 @@ from tensordict import TensorDict
 from tqdm import tqdm
 
 from collectors.dataset import DemoWindows, Normalizer, WindowConfig, fit_normalizers
+from collectors.evaluation import EvaluationResult, evaluate
 from collectors.storage import DemoDataset
 from d2a_agents.checkpoint import CheckpointError, load_checkpoint, load_for_resume, save_checkpoint
 from d2a_agents.policy.agent import (
@@ -35,6 +36,7 @@ from d2a_agents.policy.agent import (
 )
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import Imaginer
+from d2a_envs.tasks import get_task
 
 CHECKPOINT_KIND = "policy"
 CHECKPOINT_NAME = "policy.pt"
@@ -148,10 +150,22 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
     return kwargs
 
 
+def evaluate_checkpoint(
+    path: str | Path, task: str, episodes: int, seed: int, workers: int = 1, progress: bool = True
+) -> EvaluationResult:
+    """Evaluate a checkpoint's EMA policy on ``task`` in the env it was trained with (its
+    point-cloud settings, its world model when it imagines); a task it was not trained on,
+    or a checkpoint it cannot read, is refused before any worker starts."""
+    _, payload = load_policy(path)
+    name = get_task(task).name
+    if name not in payload["env_kwargs"]:
+        raise ValueError(f"{path} was trained on {payload['tasks']}, not on {name}")
+    return evaluate(functools.partial(load_torchrl_policy, path), name, episodes, seed,
+                    env_kwargs=eval_env_kwargs(payload, name), workers=workers, progress=progress)
+
+
 def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoint]]:
     """Train (or resume) a policy; returns the EMA policy and its evaluation history."""
-    from collectors.evaluation import evaluate
-
     dataset = DemoDataset.open(config.data)
     if uses_imagination(config.policy.algo) and config.world_model is None:
         raise ValueError(f"algo {config.policy.algo!r} imagines the future: pass --world-model")
@@ -197,8 +211,8 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
 
     def evaluate_now(step: int) -> None:
         task = static["tasks"][0]
-        result = evaluate(functools.partial(load_torchrl_policy, path), task, config.eval_episodes, seed=10_000,
-                          env_kwargs=eval_env_kwargs(static, task), workers=config.eval_workers, progress=False)
+        result = evaluate_checkpoint(path, task, config.eval_episodes, seed=10_000, workers=config.eval_workers,
+                                     progress=False)
         history.append(EvaluationPoint(step, result.success_rate, result.episodes))
         bar.write(f"step {step}: {task} success {result.success_rate:.0%} over {result.episodes} episodes")
 
