@@ -91,7 +91,7 @@ def cmd_train_wm(args: argparse.Namespace) -> None:
 
     base = CPU_PRESET if args.preset == "cpu" else WorldModelConfig()
     model = _replace_given(base, horizon=args.horizon, action_history=args.history, channels=args.channels,
-                           feature_mode=args.feature_mode,
+                           feature_mode=args.feature_mode, plane_pooling=args.plane_pooling,
                            resolution=tuple(args.resolution) if args.resolution else None)
     config = TrainWorldModelConfig(
         data=args.data, out=args.out, model=model, steps=args.steps, batch_size=args.batch_size,
@@ -163,9 +163,11 @@ def cmd_bench_wm(args: argparse.Namespace) -> None:
     from benchmarks.world_model import WorldModelBenchConfig, run
 
     base = WorldModelBenchConfig()
-    model = dataclasses.replace(base.model, resolution=tuple(args.resolution)) if args.resolution else base.model
-    run(dataclasses.replace(base, tasks=tuple(args.task or base.tasks), steps=args.steps, workdir=args.workdir,
-                            model=model))
+    model = _replace_given(base.model, plane_pooling=args.plane_pooling,
+                           resolution=tuple(args.resolution) if args.resolution else None)
+    run(_replace_given(base, tasks=tuple(args.task) if args.task else None,
+                       modes=tuple(args.mode) if args.mode else None, steps=args.steps, workdir=args.workdir,
+                       model=model))
 
 
 def cmd_bench_success(args: argparse.Namespace) -> None:
@@ -241,6 +243,8 @@ def build_parser() -> argparse.ArgumentParser:
     train_wm.add_argument("--history", type=int, default=None, help="past actions conditioning the model")
     train_wm.add_argument("--channels", type=int, default=None, help="feature dimension C")
     train_wm.add_argument("--feature-mode", choices=("triplane", "xy", "volume"), default=None)
+    train_wm.add_argument("--plane-pooling", choices=("mean", "max"), default=None,
+                          help="how the feature volume collapses onto each plane (default: the preset's)")
     train_wm.add_argument("--steps", type=int, default=2000)
     train_wm.add_argument("--batch-size", type=int, default=4)
     train_wm.add_argument("--lr", type=float, default=1e-3)
@@ -300,6 +304,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench_wm.add_argument("--task", action="append", default=None, help="default: hammer assembly push basketball")
     bench_wm.add_argument("--steps", type=int, default=300)
     bench_wm.add_argument("--resolution", type=int, nargs=3, default=None, metavar=("X", "Y", "Z"))
+    bench_wm.add_argument("--mode", action="append", choices=("triplane", "xy", "volume"), default=None,
+                          help="default: triplane xy volume")
+    bench_wm.add_argument("--plane-pooling", choices=("mean", "max"), default=None)
     bench_wm.add_argument("--workdir", default="outputs/bench_wm")
     bench_wm.set_defaults(func=cmd_bench_wm)
 

@@ -550,14 +550,15 @@ class FixedVolume(nn.Module):
         return self.volume
 
 
+@pytest.mark.parametrize("pooling", ["mean", "max"])
 @pytest.mark.parametrize("skip", [True, False])
 @pytest.mark.parametrize("mode", FEATURE_MODES)
-def test_planes_pool_the_right_axes_and_queries_read_the_right_planes(mode, skip):
-    """With a known feature volume and identity refiners, the planes are the axis means
-    (xy: over z, xz: over y, yz: over x) and a query at the centre of voxel (i, j, k) reads
+def test_planes_pool_the_right_axes_and_queries_read_the_right_planes(mode, skip, pooling):
+    """With a known feature volume and identity refiners, the planes are the axis means or
+    maxima (xy: over z, xz: over y, yz: over x) and a query at the centre of voxel (i, j, k) reads
     P_xy[i, j] + P_xz[i, k] + P_yz[j, k] (triplane), P_xy[i, j] (xy) or V[i, j, k] (volume);
     with ``occupancy_skip`` the decoder also gets the current occupancy of that voxel."""
-    config = WorldModelConfig(feature_mode=mode, occupancy_skip=skip, **SMALL_MODEL)
+    config = WorldModelConfig(feature_mode=mode, occupancy_skip=skip, plane_pooling=pooling, **SMALL_MODEL)
     model = TriplaneWorldModel(config)
     X, Y, Z = config.resolution
     generator = torch.Generator().manual_seed(4)
@@ -567,7 +568,8 @@ def test_planes_pool_the_right_axes_and_queries_read_the_right_planes(mode, skip
     model.refine = nn.ModuleList([nn.Identity() for _ in model.refine])
     features = model.encode(occupancy, torch.zeros(1, 3, 4))
     v = volume[0].numpy()
-    expected_planes = {"triplane": [v.mean(axis=3), v.mean(axis=2), v.mean(axis=1)], "xy": [v.mean(axis=3)],
+    pool = np.mean if pooling == "mean" else np.max
+    expected_planes = {"triplane": [pool(v, axis=3), pool(v, axis=2), pool(v, axis=1)], "xy": [pool(v, axis=3)],
                        "volume": [v]}[mode]
     assert len(features) == len(expected_planes) + int(skip)
     for got, want in zip(features, expected_planes, strict=False):
@@ -584,9 +586,9 @@ def test_planes_pool_the_right_axes_and_queries_read_the_right_planes(mode, skip
     assert inputs.shape == (1, len(cells), C + width + int(skip))
     for q, (i, j, k) in enumerate(cells):
         if mode == "triplane":
-            want = v[:, i, j, :].mean(-1) + v[:, i, :, k].mean(-1) + v[:, :, j, k].mean(-1)
+            want = pool(v[:, i, j, :], -1) + pool(v[:, i, :, k], -1) + pool(v[:, :, j, k], -1)
         elif mode == "xy":
-            want = v[:, i, j, :].mean(-1)
+            want = pool(v[:, i, j, :], -1)
         else:
             want = v[:, i, j, k]
         np.testing.assert_allclose(sampled[q], want, rtol=1e-5, atol=1e-5)
@@ -599,6 +601,8 @@ def test_planes_pool_the_right_axes_and_queries_read_the_right_planes(mode, skip
 def test_world_model_config_rejects_bad_values():
     with pytest.raises(ValueError, match="feature_mode"):
         WorldModelConfig(feature_mode="planes")
+    with pytest.raises(ValueError, match="plane_pooling"):
+        WorldModelConfig(plane_pooling="sum")
     with pytest.raises(ValueError, match="horizon"):
         WorldModelConfig(horizon=0)
 

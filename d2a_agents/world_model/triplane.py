@@ -2,8 +2,8 @@
 
 Pipeline (paper, section III-B): voxel grid V_t -> Conv3d encoder -> feature volume
 C x X x Y x Z, modulated by the action history (FiLM, zero-initialised so training starts
-from "nothing moves") -> axis-wise mean pooling to three planes P_xy (X x Y), P_xz (X x Z),
-P_yz (Y x Z) -> a few dilated 2D convolutions per plane -> for a query point p,
+from "nothing moves") -> axis-wise pooling (mean or max) to three planes P_xy (X x Y),
+P_xz (X x Z), P_yz (Y x Z) -> a few dilated 2D convolutions per plane -> for a query point p,
 f_p = P_xy(x, y) + P_xz(x, z) + P_yz(y, z) by bilinear interpolation (eq. 1-2) ->
 MLP on [f_p, PE(p), V_t(p)] -> occupancy logit of p at t + H (eq. 3).
 
@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 FEATURE_MODES = ("triplane", "xy", "volume")
+PLANE_POOLINGS = ("mean", "max")
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,9 @@ class WorldModelConfig:
             is also the encoded size (H', W', D') = (128, 128, 32) of the paper.
         channels: feature dimension C (paper: 16).
         feature_mode: ``triplane`` (the method), ``xy`` or ``volume`` (ablations).
+        plane_pooling: how the volume collapses onto a plane, ``mean`` or ``max`` over the
+            collapsed axis (the paper says "axis-wise pooling" without naming it). A mean over
+            32 cells dilutes a gripper two cells thick sixteen-fold; a max keeps it.
         horizon: H, how many control steps ahead the model imagines.
         action_history: how many past actions condition the prediction.
         action_dim: size of one action.
@@ -48,6 +52,7 @@ class WorldModelConfig:
     resolution: tuple[int, int, int] = (128, 128, 32)
     channels: int = 16
     feature_mode: str = "triplane"
+    plane_pooling: str = "mean"
     horizon: int = 4
     action_history: int = 4
     action_dim: int = 4
@@ -60,6 +65,8 @@ class WorldModelConfig:
     def __post_init__(self) -> None:
         if self.feature_mode not in FEATURE_MODES:
             raise ValueError(f"feature_mode must be one of {FEATURE_MODES}, got {self.feature_mode!r}")
+        if self.plane_pooling not in PLANE_POOLINGS:
+            raise ValueError(f"plane_pooling must be one of {PLANE_POOLINGS}, got {self.plane_pooling!r}")
         if self.horizon < 1 or self.action_history < 1:
             raise ValueError("horizon and action_history must be >= 1")
         object.__setattr__(self, "resolution", tuple(int(r) for r in self.resolution))
@@ -158,10 +165,16 @@ class TriplaneWorldModel(nn.Module):
         mode = self.config.feature_mode
         if mode == "volume":
             return [self.refine[0](volume), *skip]
-        planes = [volume.mean(dim=4)]  # xy: (B, C, X, Y)
+        pool = self._pool
+        planes = [pool(volume, 4)]  # xy: (B, C, X, Y)
         if mode == "triplane":
-            planes += [volume.mean(dim=3), volume.mean(dim=2)]  # xz: (B, C, X, Z), yz: (B, C, Y, Z)
+            planes += [pool(volume, 3), pool(volume, 2)]  # xz: (B, C, X, Z), yz: (B, C, Y, Z)
         return [*(refine(plane) for refine, plane in zip(self.refine, planes, strict=True)), *skip]
+
+    def _pool(self, volume: torch.Tensor, dim: int) -> torch.Tensor:
+        if self.config.plane_pooling == "max":
+            return volume.amax(dim=dim)
+        return volume.mean(dim=dim)
 
     def query_features(self, features: list[torch.Tensor], queries: torch.Tensor) -> torch.Tensor:
         """Summed features (B, Q, C) at queries (B, Q, 3) given in [-1, 1] box coordinates."""
