@@ -34,9 +34,10 @@ def write_world_model(path: Path, box: tuple = (CROP_BOX.low, CROP_BOX.high), ac
 
     The FiLM head is zero-initialised (actions have no effect before training), so it is
     randomised here: the tests must see the action history change the imagined cloud. The
-    occupancy logits are pushed far below 0: no voxel passes the threshold, the imaginer
-    keeps the most likely ones (as many as are occupied now, fewer than N), and fills the
-    cloud with repeats drawn from its generator, which the tests then must keep in step.
+    occupancy logits are pushed far below 0: no voxel passes the threshold and the imaginer
+    keeps the most likely ones (as many as are occupied now); where that leaves fewer than N
+    points it fills the cloud with repeats drawn from its generator, which the tests then
+    must keep in step.
     """
     config = WorldModelConfig(resolution=(16, 16, 8), channels=8, horizon=2, action_history=HISTORY,
                               action_dim=action_dim, refine_dilations=(1, 2), decoder_hidden=32, decoder_layers=2)

@@ -17,7 +17,7 @@ from torch import nn
 
 import d2a_envs
 from d2a_agents.world_model.data import WorldModelTransitions
-from d2a_agents.world_model.imagine import normalized_centres, predict_grid
+from d2a_agents.world_model.imagine import Imaginer, normalized_centres, predict_grid
 from d2a_agents.world_model.losses import balanced_queries, focal_loss, near_band
 from d2a_agents.world_model.metrics import IoUAccumulator, iou_from_counts, voxel_iou
 from d2a_agents.world_model.triplane import (
@@ -628,6 +628,42 @@ def test_predict_grid_decodes_every_voxel_centre_in_c_order():
             grid = predict_grid(model, current, actions, threshold=threshold, chunk=chunk)
             assert grid.shape == (2, X, Y, Z) and grid.dtype == torch.bool
             assert torch.equal(grid[~ambiguous.reshape(2, X, Y, Z)], expected[~ambiguous.reshape(2, X, Y, Z)])
+
+
+class KnownFuture(nn.Module):
+    """Stands in for the world model: logit +10 inside the given future voxels, -10 elsewhere."""
+
+    def __init__(self, future: torch.Tensor) -> None:
+        super().__init__()
+        self.future = future
+        self.config = WorldModelConfig(resolution=tuple(future.shape), action_history=1, action_dim=4)
+
+    def encode(self, occupancy: torch.Tensor, actions: torch.Tensor) -> list[torch.Tensor]:
+        return []
+
+    def decode(self, features: list[torch.Tensor], queries: torch.Tensor) -> torch.Tensor:
+        resolution = torch.tensor(self.future.shape)
+        index = ((queries + 1) / 2 * resolution).floor().long()
+        return torch.where(self.future[tuple(index.unbind(-1))], 10.0, -10.0)
+
+
+@pytest.mark.parametrize("keep_observed_points", [False, True])
+def test_imaginer_decodes_the_imagined_voxels_keeping_observed_points_if_asked(keep_observed_points):
+    """Grid of 4 x 4 x 2 voxels of 0.25 m over [0, 1] x [0, 1] x [0, 0.5]. The current cloud
+    fills voxels A = (0, 0, 0) and B = (3, 3, 1); the model keeps A and replaces B by the
+    empty voxel C = (1, 0, 0). Expected: A's observed points (or A's centre) and C's centre
+    (0.375, 0.125, 0.125); nothing in B."""
+    grid = VoxelGrid(CropBox((0.0, 0.0, 0.0), (1.0, 1.0, 0.5)), (4, 4, 2))
+    in_a = torch.tensor([[0.02, 0.03, 0.01], [0.2, 0.1, 0.24], [0.11, 0.22, 0.05]])
+    in_b = torch.tensor([[0.9, 0.8, 0.4], [0.95, 0.99, 0.3]])
+    future = torch.zeros(4, 4, 2, dtype=torch.bool)
+    future[0, 0, 0] = future[1, 0, 0] = True
+    centre_a, centre_c = [0.125, 0.125, 0.125], [0.375, 0.125, 0.125]
+    expected = [*in_a.tolist(), centre_c] if keep_observed_points else [centre_a, centre_c]
+    imaginer = Imaginer(KnownFuture(future), grid, num_points=len(expected), keep_observed_points=keep_observed_points)
+    imagined = imaginer(torch.cat([in_a, in_b]), torch.zeros(1, 4))
+    assert imagined.shape == (len(expected), 3)
+    np.testing.assert_allclose(sorted(imagined.tolist()), sorted(expected), atol=1e-6)
 
 
 @pytest.fixture(scope="module")
