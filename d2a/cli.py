@@ -119,7 +119,9 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
     preset = _replace_given(POLICY_PRESETS[args.preset], steps=args.steps, batch_size=args.batch_size,
                             learning_rate=args.lr)
     policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
-                            n_action_steps=args.n_action_steps, num_points=args.num_points)
+                            n_action_steps=args.n_action_steps, num_points=args.num_points,
+                            cfg_similarity=args.cfg_similarity,
+                            cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
     config = TrainPolicyConfig(
         data=args.data, out=args.out, policy=policy, world_model=args.world_model, steps=preset.steps,
         batch_size=preset.batch_size, learning_rate=preset.learning_rate, eval_every=args.eval_every,
@@ -270,6 +272,11 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--n-action-steps", type=int, default=None, help="default 4")
     train_policy.add_argument("--num-points", type=int, default=None,
                               help="points per cloud fed to the encoder (default: the preset's)")
+    train_policy.add_argument("--cfg-similarity", choices=("velocity", "prediction"), default=None,
+                              help="rho of the adaptive CFG gate: cos(v, u_null) (the paper, default) or "
+                                   "cos(u_cond, u_null)")
+    train_policy.add_argument("--cfg-thresholds", type=float, nargs=2, default=None, metavar=("TAU_L", "TAU_H"),
+                              help="eq. 7 thresholds (default -1 0)")
     train_policy.add_argument("--eval-every", type=int, default=0, help="0: evaluate at the end only")
     train_policy.add_argument("--eval-episodes", type=int, default=20)
     train_policy.add_argument("--workers", type=int, default=1)

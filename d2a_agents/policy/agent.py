@@ -52,6 +52,8 @@ class PolicyConfig:
     # branch (rho <= 0) sets w = 0 and the conditional branch first learns the unconditional
     # field: on Hammer at the demo budget, (0, 0.5) scored 0/20, (-1, 0) 1/10, no CFG 2/10.
     cfg_thresholds: tuple[float, float] = (-1.0, 0.0)
+    # rho of eq. 7: "velocity" (the paper: cos(v, u_null)) or "prediction" (cos(u_cond, u_null)).
+    cfg_similarity: str = "velocity"
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     network: VelocityNetConfig = field(default_factory=VelocityNetConfig)
 
@@ -96,7 +98,8 @@ def make_expert(config: PolicyConfig):
     from d2a_agents.policy.meanflow import MeanFlow, MeanFlowConfig
 
     tau_l, tau_h = config.cfg_thresholds
-    return MeanFlow(MeanFlowConfig(cfg_enabled=config.algo in ("d2a", "d2a-no-imagination"), tau_l=tau_l, tau_h=tau_h))
+    return MeanFlow(MeanFlowConfig(cfg_enabled=config.algo in ("d2a", "d2a-no-imagination"), tau_l=tau_l, tau_h=tau_h,
+                                   cfg_similarity=config.cfg_similarity))
 
 
 def subsample_cloud(cloud: torch.Tensor, num_points: int) -> torch.Tensor:
