@@ -167,10 +167,9 @@ class TriplaneWorldModel(nn.Module):
         mode = self.config.feature_mode
         if mode == "volume":
             return [self.refine[0](volume), *skip]
-        pool = self._pool
-        planes = [pool(volume, 4)]  # xy: (B, C, X, Y)
+        planes = [self._pool(volume, 4)]  # xy: (B, C, X, Y)
         if mode == "triplane":
-            planes += [pool(volume, 3), pool(volume, 2)]  # xz: (B, C, X, Z), yz: (B, C, Y, Z)
+            planes += [self._pool(volume, 3), self._pool(volume, 2)]  # xz: (B, C, X, Z), yz: (B, C, Y, Z)
         return [*(refine(plane) for refine, plane in zip(self.refine, planes, strict=True)), *skip]
 
     def _pool(self, volume: torch.Tensor, dim: int) -> torch.Tensor:
