@@ -56,6 +56,7 @@ def test_collect_train_evaluate_without_imagination(algo, reach_data, tmp_path):
     assert [point.step for point in history] == [3] and history[0].episodes == 1
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
     assert set(payload["normalizers"]) == {"action", "agent_pos"}
+    assert [set(row) for row in payload["metrics"]] == [{"step", "mse"}] * 3  # no CFG gate in these variants
     result = evaluate(lambda: load_torchrl_policy(tmp_path / CHECKPOINT_NAME), "reach", 1, seed=5,
                       env_kwargs=eval_env_kwargs(payload, "reach"), progress=False)
     assert len(result.successes) == 1 and len(result.returns) == 1
@@ -68,6 +69,8 @@ def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_mode
     assert policy.config.encoder.use_imagination
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
     assert eval_env_kwargs(payload, "reach")["world_model"] == world_model  # acts with imagination
+    gate = [(row["cfg_weight"], row["cfg_rho"]) for row in payload["metrics"]]
+    assert len(gate) == 3 and all(0.0 <= w <= 1.0 and -1.0 <= rho <= 1.0 for w, rho in gate)
     assert history[0].episodes == 1
 
 
@@ -82,7 +85,8 @@ def test_training_resumes_from_its_checkpoint(reach_data, tmp_path):
     first, _ = load_policy(tmp_path / CHECKPOINT_NAME)
     _, history = train_policy(policy_config("mp1", reach_data, tmp_path, steps=4))
     assert load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["step"] == 4
-    assert len(load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["losses"]) == 4  # 2 before + 2 after resuming
+    metrics = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["metrics"]
+    assert [row["step"] for row in metrics] == [1, 2, 3, 4]  # 2 before + 2 after resuming
     resumed, _ = load_policy(tmp_path / CHECKPOINT_NAME)
     assert not torch.equal(first.net.input.weight, resumed.net.input.weight)
 

@@ -40,6 +40,9 @@ from d2a_envs.tasks import get_task
 
 CHECKPOINT_KIND = "policy"
 CHECKPOINT_NAME = "policy.pt"
+# Per-step training figures kept in the checkpoint (``metrics``): the unweighted MSE and, with
+# adaptive CFG, the batch means of the gate w and of rho (eq. 7), to see what the gate does.
+LOGGED_METRICS = ("mse", "cfg_weight", "cfg_rho")
 
 
 @dataclass(frozen=True)
@@ -191,7 +194,7 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         "tasks": sorted(dataset.metadata.tasks), "env_kwargs": dataset.metadata.tasks, "data": str(config.data),
         "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "policy"},
     }
-    start, history, losses = 0, [], []
+    start, history, metrics = 0, [], []
     previous = load_for_resume(path, CHECKPOINT_KIND, static, ("policy_config", "world_model", "tasks"))
     if previous is not None:
         policy.load_state_dict(previous["model"])
@@ -200,13 +203,13 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         scheduler.load_state_dict(previous["scheduler"])
         generator.set_state(previous["generator"])
         start, history = previous["step"], [EvaluationPoint(**point) for point in previous["history"]]
-        losses = previous["losses"]
+        metrics = previous.get("metrics", [])
 
     def checkpoint(step: int) -> None:
         save_checkpoint(path, CHECKPOINT_KIND, {
             **static, "model": policy.state_dict(), "ema": ema.state_dict(), "optimizer": optimizer.state_dict(),
             "scheduler": scheduler.state_dict(), "generator": generator.get_state(), "step": step,
-            "history": [dataclasses.asdict(point) for point in history], "losses": losses,
+            "history": [dataclasses.asdict(point) for point in history], "metrics": metrics,
         })
 
     def evaluate_now(step: int) -> None:
@@ -233,7 +236,7 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         # MeanFlow's adaptively weighted loss stays near 1 by design: the curve shows the MSE.
         bar.set_postfix(mse=f"{info['mse']:.4f}")
         done = step + 1
-        losses.append((done, info["mse"]))
+        metrics.append({"step": done, **{key: info[key] for key in LOGGED_METRICS if key in info}})
         evaluating = config.eval_episodes > 0 and (
             (config.eval_every and done % config.eval_every == 0) or done == config.steps)
         if evaluating or done % config.checkpoint_every == 0 or done == config.steps:
