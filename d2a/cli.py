@@ -188,14 +188,22 @@ def cmd_demo(args: argparse.Namespace) -> None:
 
     base = DemoConfig()
     run_demo(_replace_given(
-        base, task=args.task, out=args.out_dir, episodes=args.episodes, world_model_steps=args.wm_steps,
+        base, task=args.task, out=args.out, episodes=args.episodes, world_model_steps=args.wm_steps,
         policy=_replace_given(base.policy, steps=args.policy_steps), eval_episodes=args.eval_episodes,
         seed=args.seed,
     ))
 
 
+class _Parser(argparse.ArgumentParser):
+    """Refuses abbreviated options (``--out`` must not silently stand for another ``--out...``);
+    sub-commands inherit the class."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **{**kwargs, "allow_abbrev": False})
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="d2a", description="D2A: imagine the 3D future, then act.")
+    parser = _Parser(prog="d2a", description="D2A: imagine the 3D future, then act.")
     commands = parser.add_subparsers(dest="command", required=True)
 
     tasks = commands.add_parser("tasks", help="list the registered tasks")
@@ -334,7 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = commands.add_parser("demo", help="end to end on Hammer: collect, world model, D2A policy, evaluate")
     demo.add_argument("--task", default=None, help="default: hammer")
-    demo.add_argument("--out-dir", default=None, help="default: outputs/demo")
+    demo.add_argument("--out", default=None, help="output directory (default: outputs/demo)")
     demo.add_argument("--episodes", type=int, default=None, help="demonstrations (default 10)")
     demo.add_argument("--wm-steps", type=int, default=None)
     demo.add_argument("--policy-steps", type=int, default=None)

@@ -59,3 +59,11 @@ def test_demo_options_change_only_what_they_name(captured):
     config = captured["config"]
     assert (config.task, config.policy.steps, config.policy.batch_size, config.episodes) == ("push", 5, 32, 10)
     assert config.policy.policy == d2a.demo.DemoConfig().policy.policy
+
+
+def test_abbreviated_options_are_refused(captured, capsys):
+    main(["demo", "--out", "runs/demo"])
+    assert captured["config"].out == "runs/demo"
+    with pytest.raises(SystemExit):
+        main(["train-policy", "--data", "d", "--out", "o", "--eval-ev", "5"])  # --eval-every, abbreviated
+    assert "unrecognized arguments: --eval-ev" in capsys.readouterr().err
