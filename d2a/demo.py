@@ -84,7 +84,8 @@ def plot_training_curves(
     loss_axis.legend()
     if has_gate:
         gate_axis = axes[1]
-        for key, label in (("cfg_weight", "gate w (batch mean)"), ("cfg_rho", "cosine rho (batch mean)")):
+        for key, label in (("cfg_weight", "gate w (batch mean)"), ("cfg_rho", "cosine rho (batch mean)"),
+                           ("cfg_active", "fraction with w < 1")):
             curve = _running_mean([row[key] for row in metrics], window)
             gate_axis.plot(steps[-len(curve):], curve, label=f"{label}, {window}-step mean")
         tau_l, tau_h = policy["policy_config"]["cfg_thresholds"]

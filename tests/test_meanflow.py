@@ -242,7 +242,18 @@ def test_loss_drops_the_condition_for_about_drop_probability_of_the_batch():
     assert no_gradient == pytest.approx(0.1, abs=0.025)  # binomial std 0.005
     assert info["drop_fraction"] == pytest.approx(no_gradient)
     assert net.null_condition.grad.abs().sum() > 0
-    assert set(info) == {"loss", "mse", "drop_fraction", "cfg_weight", "cfg_rho"}
+    assert set(info) == {"loss", "mse", "drop_fraction", "cfg_weight", "cfg_rho", "cfg_active"}
+
+
+def test_logged_gate_statistics_follow_eq7_inside_the_band():
+    """With (tau_l, tau_h) = (-1, 1) every rho lies inside the band: w = (rho + 1) / 2 for each
+    sample, so the batch means obey the same relation and every sample counts as changed."""
+    net = random_velocity_net(horizon=2, action_dim=2, cond_dim=3)
+    gen = torch.Generator().manual_seed(1)
+    cond, actions = torch.randn(256, 3, generator=gen), torch.rand(256, 2, 2, generator=gen) * 2 - 1
+    _, info = MeanFlow(MeanFlowConfig(tau_l=-1.0, tau_h=1.0)).loss(net, actions, cond, generator=gen)
+    assert info["cfg_weight"] == pytest.approx((info["cfg_rho"] + 1) / 2, abs=1e-6)
+    assert info["cfg_active"] == 1.0
 
 
 @pytest.mark.parametrize("similarity", ["velocity", "prediction"])

@@ -69,8 +69,8 @@ def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_mode
     assert policy.config.encoder.use_imagination
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
     assert eval_env_kwargs(payload, "reach")["world_model"] == world_model  # acts with imagination
-    gate = [(row["cfg_weight"], row["cfg_rho"]) for row in payload["metrics"]]
-    assert len(gate) == 3 and all(0.0 <= w <= 1.0 and -1.0 <= rho <= 1.0 for w, rho in gate)
+    gate = [(row["cfg_weight"], row["cfg_rho"], row["cfg_active"]) for row in payload["metrics"]]
+    assert len(gate) == 3 and all(0 <= w <= 1 and -1 <= rho <= 1 and 0 <= active <= 1 for w, rho, active in gate)
     assert history[0].episodes == 1
 
 

@@ -33,6 +33,13 @@ distance 0.04-0.05, samples pulled towards the centre, against 0.008-0.014 witho
 ``cfg_similarity="prediction"`` gates on the cosine between the conditional and
 unconditional predictions u(z_t, t, t | c) and u(z_t, t, t | null) instead: a function of
 (z_t, c) alone, with no such bias, for one more gradient-free evaluation per training step.
+
+The paper's gate acts where it hurts most: near the data. On Hammer (a trained policy,
+thresholds (-1, 0)), cos(v, u_null) falls below 0 for 27 % of the samples with t < 0.1 and
+18 % of those with t in [0.1, 0.3), where the target moves by a mean squared 0.50 and 0.21
+per normalized action element (0.86 and 0.43 on the gripper), against under 1 % of the
+samples and 0.001 for t > 0.6; the batch-mean w stays at 0.99 and hides it. The prediction
+gate moves the target by 0.02 at t < 0.1.
 """
 
 from __future__ import annotations
@@ -185,8 +192,9 @@ class MeanFlow:
         """Adaptively weighted MeanFlow loss on normalized action chunks (B, T, A) given conditions (B, C).
 
         Returns the scalar loss and floats for logging: ``loss``, ``mse`` (unweighted, per
-        element) and, with CFG, ``drop_fraction``, ``cfg_weight`` and ``cfg_rho`` (the last two:
-        batch means over the conditional samples).
+        element) and, with CFG, ``drop_fraction``, ``cfg_weight``, ``cfg_rho`` and ``cfg_active``
+        (over the conditional samples: the means of w and rho, and the fraction whose target
+        the gate changes, w < 1).
         """
         c = self.config
         batch = actions.shape[0]
@@ -204,6 +212,7 @@ class MeanFlow:
             info["drop_fraction"] = drop.float().mean().item()
             info["cfg_weight"] = w[kept].mean().item() if kept.any() else float("nan")
             info["cfg_rho"] = rho[kept].mean().item() if kept.any() else float("nan")
+            info["cfg_active"] = (w[kept] < 1).float().mean().item() if kept.any() else float("nan")
         u, target = meanflow_target(net, z, r, t, v, cond, drop)
         squared_error = (u - target).pow(2).flatten(1).sum(dim=1)
         weight = (squared_error.detach() + c.adaptive_eps).pow(-c.adaptive_power)

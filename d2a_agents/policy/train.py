@@ -41,8 +41,9 @@ from d2a_envs.tasks import get_task
 CHECKPOINT_KIND = "policy"
 CHECKPOINT_NAME = "policy.pt"
 # Per-step training figures kept in the checkpoint (``metrics``): the unweighted MSE and, with
-# adaptive CFG, the batch means of the gate w and of rho (eq. 7), to see what the gate does.
-LOGGED_METRICS = ("mse", "cfg_weight", "cfg_rho")
+# adaptive CFG, the batch means of the gate w and of rho (eq. 7) and the fraction of the batch
+# whose target the gate changes (w < 1), to see what the gate does.
+LOGGED_METRICS = ("mse", "cfg_weight", "cfg_rho", "cfg_active")
 
 
 @dataclass(frozen=True)
