@@ -281,8 +281,8 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--num-points", type=int, default=None,
                               help="points per cloud fed to the encoder (default: the preset's)")
     train_policy.add_argument("--cfg-similarity", choices=("velocity", "prediction"), default=None,
-                              help="rho of the adaptive CFG gate: cos(v, u_null) (the paper, default) or "
-                                   "cos(u_cond, u_null)")
+                              help="rho of the adaptive CFG gate: cos(u_cond, u_null) (default) or cos(v, u_null) "
+                                   "with v the sampled velocity (MeanFlow's CFG reading)")
     train_policy.add_argument("--cfg-thresholds", type=float, nargs=2, default=None, metavar=("TAU_L", "TAU_H"),
                               help="eq. 7 thresholds (default -1 0)")
     train_policy.add_argument("--eval-every", type=int, default=0, help="0: evaluate at the end only")

@@ -206,7 +206,8 @@ def test_guided_velocity_follows_eq6_with_hand_values():
     w_first = (1 / math.sqrt(5)) / 0.5
     expected = torch.tensor([[[w_first + (1 - w_first), 2 * w_first]], [[1.0, 0.0]], [[3.0, 0.0]]])
 
-    v_cfg, w, rho = MeanFlow(MeanFlowConfig(tau_l=0.0, tau_h=0.5)).guided_velocity(net, z, t, v, cond)
+    by_velocity = MeanFlow(MeanFlowConfig(tau_l=0.0, tau_h=0.5, cfg_similarity="velocity"))
+    v_cfg, w, rho = by_velocity.guided_velocity(net, z, t, v, cond)
     torch.testing.assert_close(rho, torch.tensor([1 / math.sqrt(5), -1 / math.sqrt(2), 1.0]))
     torch.testing.assert_close(w, torch.tensor([w_first, 0.0, 1.0]))
     torch.testing.assert_close(v_cfg, expected)

@@ -27,19 +27,19 @@ def tiny_policy(algo: str, **changes) -> Policy:
     ("dp3", Diffusion, None, False, 1000.0),
 ])
 def test_algo_flag_selects_expert_cfg_and_imagination(algo, expert, cfg, imagination, time_scale):
-    policy = tiny_policy(algo, cfg_thresholds=(-0.5, 0.25), cfg_similarity="prediction")
+    policy = tiny_policy(algo, cfg_thresholds=(-0.5, 0.25), cfg_similarity="velocity")
     assert isinstance(policy.expert, expert)
     assert policy.config.encoder.use_imagination is imagination
     assert policy.config.network.time_scale == time_scale
     if cfg is not None:
         assert policy.expert.config.cfg_enabled is cfg
         assert (policy.expert.config.tau_l, policy.expert.config.tau_h) == (-0.5, 0.25)
-        assert policy.expert.config.cfg_similarity == "prediction"
+        assert policy.expert.config.cfg_similarity == "velocity"  # not the default
 
 
 def test_config_round_trip_and_bad_algo():
     config = PolicyConfig(algo="mp1", horizon=16, n_obs_steps=2, n_action_steps=8, cfg_thresholds=(-1.0, 0.0),
-                          cfg_similarity="prediction", **TINY)
+                          cfg_similarity="velocity", **TINY)
     assert PolicyConfig.from_dict(config.to_dict()) == config
     assert config.executed_actions == 8
     assert PolicyConfig(algo="mp1").executed_actions == 3  # horizon 4 starting at the older of 2 observations
