@@ -55,8 +55,8 @@ class PolicyConfig:
     # rho of eq. 7: "prediction" (cos(u_cond, u_null), the network's conditional velocity) or
     # "velocity" (cos(v, u_null), v the sampled A_1 - A_0, as MeanFlow's CFG target uses it); the
     # paper's v_t(. | c) admits both. On Hammer (mp1 + the CFG target, 4000 steps, 50 episodes
-    # per seed): "velocity" 0 / 0 / 0 %, "prediction" 6 / 12 %, no gate (condition dropout only)
-    # 20 %, mp1 18 / 20 / 24 %; see d2a_agents/policy/meanflow.py for why.
+    # per seed): "velocity" 0 / 0 / 0 %, "prediction" 6 / 12 / 0 %, no gate (condition dropout only)
+    # 20 / 22 %, mp1 18 / 20 / 24 %; see d2a_agents/policy/meanflow.py for why.
     cfg_similarity: str = "prediction"
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     network: VelocityNetConfig = field(default_factory=VelocityNetConfig)

@@ -41,9 +41,9 @@ thresholds (-1, 0)), cos(v, u_null) falls below 0 for 27 % of the samples with t
 per normalized action element (0.86 and 0.43 on the gripper), against under 1 % of the
 samples and 0.001 for t > 0.6; the batch-mean w stays at 0.99 and hides it. The prediction
 gate moves the target by 0.02 at t < 0.1. Success on Hammer (mp1 plus the CFG target, 4000
-steps of the cpu preset, 50 episodes per seed): "velocity" 0 / 0 / 0 %, "prediction" 6 / 12 %,
-condition dropout alone (w = 1) 20 %, mp1 18 / 20 / 24 %. Any pull towards the unconditional
-field costs success at this budget; the prediction gate costs least.
+steps of the cpu preset, 50 episodes per seed): "velocity" 0 / 0 / 0 %, "prediction"
+6 / 12 / 0 %, condition dropout alone (w = 1) 20 / 22 %, mp1 18 / 20 / 24 %. Any pull
+towards the unconditional field costs success at this budget; the prediction gate costs least.
 """
 
 from __future__ import annotations
