@@ -104,6 +104,7 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
     collector = Collector(
         env, ScriptedExpert(spec.name), frames_per_batch=config.max_episode_steps,
         trajs_per_batch=1, traj_format="cat", total_frames=-1,
+        auto_register_policy_transforms=False,  # the expert is stateless: leave the env as it is
     )
     bar = tqdm(total=config.episodes, initial=record.kept, desc=f"{spec.name} demos", disable=not config.progress)
     try:
