@@ -214,9 +214,8 @@ class MeanFlow:
             v = torch.where(_per_sample(drop, v), v, v_cfg)
             kept = ~drop
             info["drop_fraction"] = drop.float().mean().item()
-            info["cfg_weight"] = w[kept].mean().item() if kept.any() else float("nan")
-            info["cfg_rho"] = rho[kept].mean().item() if kept.any() else float("nan")
-            info["cfg_active"] = (w[kept] < 1).float().mean().item() if kept.any() else float("nan")
+            for key, value in (("cfg_weight", w), ("cfg_rho", rho), ("cfg_active", (w < 1).float())):
+                info[key] = value[kept].mean().item() if kept.any() else float("nan")
         u, target = meanflow_target(net, z, r, t, v, cond, drop)
         squared_error = (u - target).pow(2).flatten(1).sum(dim=1)
         weight = (squared_error.detach() + c.adaptive_eps).pow(-c.adaptive_power)
