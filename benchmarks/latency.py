@@ -54,7 +54,8 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
     cloud = torch.as_tensor(observation["point_cloud"])
     state_dim, action_dim = observation["agent_pos"].shape[0], env.action_space.shape[0]
     normalizers = {"action": Normalizer(-torch.ones(action_dim), torch.ones(action_dim)),
-                   "agent_pos": Normalizer(-torch.ones(state_dim), torch.ones(state_dim))}
+                   "agent_pos": Normalizer(-torch.ones(state_dim), torch.ones(state_dim)),
+                   "point_cloud": Normalizer(cloud.amin(0), cloud.amax(0))}
     results = {}
     for algo in ("d2a", "mp1", "dp3"):
         policy_config = PolicyConfig(algo=algo, num_points=config.num_points)

@@ -9,6 +9,10 @@ from collections.abc import Sequence
 from typing import Any
 
 
+# d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
+ALGOS = ("d2a", "d2a-no-cfg", "d2a-no-imagination", "mp1", "dp3", "mp1-state")
+
+
 def _parse_box(text: str | None) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
     if text is None:
         return None
@@ -120,12 +124,13 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                             learning_rate=args.lr)
     policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
                             n_action_steps=args.n_action_steps, num_points=args.num_points,
-                            cfg_similarity=args.cfg_similarity,
+                            cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
     config = TrainPolicyConfig(
         data=args.data, out=args.out, policy=policy, world_model=args.world_model, steps=preset.steps,
         batch_size=preset.batch_size, learning_rate=preset.learning_rate, eval_every=args.eval_every,
         eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
+        holdout_episodes=args.holdout_episodes, device=args.device, threads=args.threads,
     )
     _, history = train_policy(config)
     for point in history:
@@ -266,12 +271,12 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy = commands.add_parser("train-policy", help="train a policy (d2a, mp1, dp3, ablations)")
     train_policy.add_argument("--data", required=True)
     train_policy.add_argument("--out", required=True, help="run directory; an existing run is resumed")
-    train_policy.add_argument("--algo", choices=("d2a", "d2a-no-cfg", "d2a-no-imagination", "mp1", "dp3"),
-                              default="d2a")
+    train_policy.add_argument("--algo", choices=ALGOS, default="d2a",
+                              help="mp1-state: the privileged-state reference (no cloud; the perception upper bound)")
     train_policy.add_argument("--world-model", default=None, help="checkpoint of d2a train-wm (d2a variants)")
     train_policy.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
-                              help="networks and budget: cpu (narrow, 4000 steps of 32, lr 1e-3) or paper "
-                                   "(1024 points, 47k steps of 128, lr 1e-4; GPU work)")
+                              help="networks and budget: cpu (64 points, narrow, 4000 steps of 256, lr 1e-3) or "
+                                   "paper (1024 points, 47k steps of 128, lr 1e-4; GPU work)")
     train_policy.add_argument("--steps", type=int, default=None, help="default: the preset's")
     train_policy.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
     train_policy.add_argument("--lr", type=float, default=None, help="default: the preset's")
@@ -285,6 +290,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "with v the sampled velocity (MeanFlow's CFG reading)")
     train_policy.add_argument("--cfg-thresholds", type=float, nargs=2, default=None, metavar=("TAU_L", "TAU_H"),
                               help="eq. 7 thresholds (default -1 0)")
+    train_policy.add_argument("--adaptive-power", type=float, default=None,
+                              help="MeanFlow's adaptive loss power p (0: plain squared error; default: the preset's)")
+    train_policy.add_argument("--holdout-episodes", type=int, default=0,
+                              help="hold out the last K episodes of each task for the perception check")
+    train_policy.add_argument("--device", default="cpu", help="cpu or cuda (evaluation runs on the CPU)")
+    train_policy.add_argument("--threads", type=int, default=0, help="torch threads for training (0: torch's default)")
     train_policy.add_argument("--eval-every", type=int, default=0, help="0: evaluate at the end only")
     train_policy.add_argument("--eval-episodes", type=int, default=20)
     train_policy.add_argument("--workers", type=int, default=1)
@@ -331,8 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_success.add_argument("--task", action="append", default=None,
                                help="default: hammer lever-pull assembly push stick-pull")
     bench_success.add_argument("--algo", action="append", default=None,
-                               choices=("d2a", "d2a-no-cfg", "d2a-no-imagination", "mp1", "dp3"),
-                               help="default: d2a d2a-no-cfg mp1 dp3")
+                               choices=ALGOS, help="default: d2a d2a-no-cfg mp1 dp3 mp1-state")
     bench_success.add_argument("--seed", type=int, action="append", default=None, help="default: the preset's")
     bench_success.add_argument("--steps", type=int, default=None, help="policy training steps (default: preset's)")
     bench_success.add_argument("--workers", type=int, default=None, help="evaluation worker processes")
@@ -353,6 +363,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
+    import d2a_envs  # noqa: F401  (chooses MuJoCo's GL platform before anything imports mujoco)
+
     args = build_parser().parse_args(argv)
     try:
         args.func(args)

@@ -31,9 +31,26 @@ def captured(monkeypatch) -> dict[str, object]:
 def test_train_policy_defaults_to_the_cpu_preset_and_flags_override_it(captured):
     main(["train-policy", "--data", "d", "--out", "o", "--algo", "mp1", "--steps", "7"])
     config = captured["config"]
-    assert (config.steps, config.batch_size, config.learning_rate) == (7, 32, 1e-3)
-    assert (config.policy.algo, config.policy.num_points, config.policy.network.hidden) == ("mp1", 256, 128)
+    assert (config.steps, config.batch_size, config.learning_rate) == (7, 256, 1e-3)
+    assert (config.policy.algo, config.policy.num_points, config.policy.network.hidden) == ("mp1", 64, 128)
     assert not config.policy.encoder.use_imagination  # the algo decides, whatever the preset said
+    assert (config.device, config.threads, config.holdout_episodes) == ("cpu", 0, 0)
+
+
+def test_train_policy_state_reference_device_threads_and_holdout(captured):
+    main(["train-policy", "--data", "d", "--out", "o", "--algo", "mp1-state", "--device", "cuda", "--threads", "1",
+          "--holdout-episodes", "2", "--adaptive-power", "0.5"])
+    config = captured["config"]
+    assert (config.device, config.threads, config.holdout_episodes) == ("cuda", 1, 2)
+    assert config.policy.adaptive_power == 0.5
+    assert not config.policy.encoder.use_cloud and config.policy.encoder.state_key == "state"
+
+
+def test_the_cli_offers_every_policy_variant():
+    from d2a.cli import ALGOS
+    from d2a_agents.policy.agent import ALGORITHMS
+
+    assert ALGOS == ALGORITHMS
 
 
 def test_train_policy_paper_preset(captured):
@@ -48,7 +65,7 @@ def test_bench_success_options(captured):
     main(["bench", "success", "--task", "push", "--algo", "mp1", "--algo", "dp3", "--seed", "1", "--steps", "9"])
     config = captured["config"]
     assert (config.tasks, config.algos, config.seeds, config.policy.steps) == (("push",), ("mp1", "dp3"), (1,), 9)
-    assert config.policy.batch_size == 32 and config.evaluations == 1
+    assert config.policy.batch_size == 256 and config.evaluations == 1
     main(["bench", "success", "--preset", "paper"])
     paper = captured["config"]
     assert paper.seeds == (0, 1, 2) and paper.evaluations == 15 and paper.final_episodes == 100
@@ -57,7 +74,7 @@ def test_bench_success_options(captured):
 def test_demo_options_change_only_what_they_name(captured):
     main(["demo", "--task", "push", "--policy-steps", "5"])
     config = captured["config"]
-    assert (config.task, config.policy.steps, config.policy.batch_size, config.episodes) == ("push", 5, 32, 10)
+    assert (config.task, config.policy.steps, config.policy.batch_size, config.episodes) == ("push", 5, 256, 10)
     assert config.policy.policy == d2a.demo.DemoConfig().policy.policy
 
 

@@ -50,12 +50,18 @@ def policy_config(algo: str, data: str, out, world_model: str | None = None, ste
                              progress=False)
 
 
-@pytest.mark.parametrize("algo", ["mp1", "dp3"])
-def test_collect_train_evaluate_without_imagination(algo, reach_data, tmp_path):
+@pytest.mark.parametrize("algo, normalizers", [
+    ("mp1", {"action", "agent_pos", "point_cloud"}), ("dp3", {"action", "agent_pos", "point_cloud"}),
+    ("mp1-state", {"action", "state"}),
+])
+def test_collect_train_evaluate_without_imagination(algo, normalizers, reach_data, tmp_path):
     _, history = train_policy(policy_config(algo, reach_data, tmp_path))
     assert [point.step for point in history] == [3] and history[0].episodes == 1
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
-    assert set(payload["normalizers"]) == {"action", "agent_pos"}
+    assert set(payload["normalizers"]) == normalizers
+    (check,) = payload["reliance"]  # the perception check ran once, at the end, on training windows
+    assert check["step"] == 3 and check["where"] == "training" and check["windows"] == 400
+    assert (check["clouds_shuffled"] is None) == (algo == "mp1-state")
     assert [set(row) for row in payload["metrics"]] == [{"step", "mse"}] * 3  # no CFG gate in these variants
     result = evaluate(lambda: load_torchrl_policy(tmp_path / CHECKPOINT_NAME), "reach", 1, seed=5,
                       env_kwargs=eval_env_kwargs(payload, "reach"), progress=False)
@@ -72,6 +78,22 @@ def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_mode
     gate = [(row["cfg_weight"], row["cfg_rho"], row["cfg_active"]) for row in payload["metrics"]]
     assert len(gate) == 3 and all(0 <= w <= 1 and -1 <= rho <= 1 and 0 <= active <= 1 for w, rho, active in gate)
     assert history[0].episodes == 1
+
+
+def test_held_out_episodes_are_not_trained_on_and_serve_the_perception_check(reach_data, tmp_path):
+    config = dataclasses.replace(policy_config("mp1", reach_data, tmp_path), holdout_episodes=1, eval_episodes=0)
+    train_policy(config)
+    payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
+    assert payload["held_out_episodes"] == [1]
+    assert payload["reliance"][0]["where"] == "held-out" and payload["reliance"][0]["windows"] == 200
+    with pytest.raises(ValueError, match="cannot hold out 2 of 2"):
+        train_policy(dataclasses.replace(config, out=str(tmp_path / "other"), holdout_episodes=2))
+
+
+def test_bad_training_settings_are_refused():
+    for field, value in (("steps", 0), ("batch_size", 0), ("holdout_episodes", -1), ("learning_rate", 0.0)):
+        with pytest.raises(ValueError, match=field):
+            TrainPolicyConfig(data="d", out="o", **{field: value})
 
 
 def test_zero_evaluation_episodes_train_without_evaluating(reach_data, tmp_path):

@@ -15,22 +15,34 @@ from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
 TINY = dict(num_points=16, encoder=EncoderConfig(point_widths=(8,)), network=VelocityNetConfig(hidden=16, layers=1))
 
 
+def unit_normalizers(state_dim: int = 4) -> dict[str, Normalizer]:
+    return {"action": Normalizer(-torch.ones(4), torch.ones(4)),
+            "agent_pos": Normalizer(-torch.ones(4), torch.ones(4)),
+            "state": Normalizer(-torch.ones(state_dim), torch.ones(state_dim)),
+            "point_cloud": Normalizer(-torch.ones(3), torch.ones(3))}
+
+
 def tiny_policy(algo: str, **changes) -> Policy:
-    normalizers = {"action": Normalizer(-torch.ones(4), torch.ones(4)),
-                   "agent_pos": Normalizer(-torch.ones(4), torch.ones(4))}
-    return Policy(PolicyConfig(algo=algo, **{**TINY, **changes}), 4, 4, normalizers)
+    return Policy(PolicyConfig(algo=algo, **{**TINY, **changes}), 4, 4, unit_normalizers())
 
 
-@pytest.mark.parametrize("algo, expert, cfg, imagination, time_scale", [
-    ("d2a", MeanFlow, True, True, 1.0), ("d2a-no-cfg", MeanFlow, False, True, 1.0),
-    ("d2a-no-imagination", MeanFlow, True, False, 1.0), ("mp1", MeanFlow, False, False, 1.0),
-    ("dp3", Diffusion, None, False, 1000.0),
+@pytest.mark.parametrize("algo, expert, cfg, imagination, keys, time_scale", [
+    ("d2a", MeanFlow, True, True, ("point_cloud", "agent_pos", "imagined_point_cloud"), 1.0),
+    ("d2a-no-cfg", MeanFlow, False, True, ("point_cloud", "agent_pos", "imagined_point_cloud"), 1.0),
+    ("d2a-no-imagination", MeanFlow, True, False, ("point_cloud", "agent_pos"), 1.0),
+    ("mp1", MeanFlow, False, False, ("point_cloud", "agent_pos"), 1.0),
+    ("dp3", Diffusion, None, False, ("point_cloud", "agent_pos"), 1000.0),
+    ("mp1-state", MeanFlow, False, False, ("state",), 1.0),
 ])
-def test_algo_flag_selects_expert_cfg_and_imagination(algo, expert, cfg, imagination, time_scale):
-    policy = tiny_policy(algo, cfg_thresholds=(-0.5, 0.25), cfg_similarity="velocity")
+def test_algo_flag_selects_expert_cfg_imagination_and_inputs(algo, expert, cfg, imagination, keys, time_scale):
+    policy = tiny_policy(algo, cfg_thresholds=(-0.5, 0.25), cfg_similarity="velocity", adaptive_power=0.5)
     assert isinstance(policy.expert, expert)
     assert policy.config.encoder.use_imagination is imagination
+    assert policy.config.observation_keys == keys
+    assert (policy.encoder.cloud is None) == ("point_cloud" not in keys)
     assert policy.config.network.time_scale == time_scale
+    if expert is MeanFlow:
+        assert policy.expert.config.adaptive_power == 0.5
     if cfg is not None:
         assert policy.expert.config.cfg_enabled is cfg
         assert (policy.expert.config.tau_l, policy.expert.config.tau_h) == (-0.5, 0.25)
@@ -71,3 +83,24 @@ def test_runner_plans_once_per_chunk_and_forgets_on_reset(monkeypatch):
     runner.reset()
     runner.act(observation(9.0))
     assert len(windows) == 4 and windows[3]["agent_pos"][0, :, 0].tolist() == [9.0, 9.0]
+
+
+def test_clouds_are_normalized_per_axis_inside_the_policy():
+    """Both clouds map through the current cloud's min/max per axis, computed here by hand."""
+    low, high = torch.tensor([0.0, -1.0, 2.0]), torch.tensor([2.0, 3.0, 2.5])
+    normalizers = {**unit_normalizers(), "point_cloud": Normalizer(low, high)}
+    policy = Policy(PolicyConfig(algo="d2a", **TINY), 4, 4, normalizers)
+    cloud = torch.tensor([[[[1.0, 1.0, 2.25], [2.0, 3.0, 2.0]]]])  # (B=1, n_obs=1, N=2, 3)
+    expected = torch.tensor([[[[0.0, 0.0, 0.0], [1.0, 1.0, -1.0]]]])
+    window = {"point_cloud": cloud, "imagined_point_cloud": cloud + 1.0, "agent_pos": torch.zeros(1, 1, 4)}
+    normalized = policy.normalize_observation(window)
+    torch.testing.assert_close(normalized["point_cloud"], expected)
+    torch.testing.assert_close(normalized["imagined_point_cloud"], expected + torch.tensor([1.0, 0.5, 4.0]))
+
+
+def test_a_policy_without_its_normalizers_is_refused():
+    normalizers = unit_normalizers()
+    del normalizers["point_cloud"]
+    with pytest.raises(ValueError, match="point_cloud"):
+        Policy(PolicyConfig(algo="mp1", **TINY), 4, 4, normalizers)
+    Policy(PolicyConfig(algo="mp1-state", **TINY), 4, 4, normalizers)  # reads no cloud

@@ -2,13 +2,23 @@
 
 Variants (``--algo``), all on the same encoders, network, data and evaluation:
 
-| algo | action expert | imagined cloud | adaptive CFG |
-| --- | --- | --- | --- |
-| ``d2a`` | MeanFlow, 1 step | yes | yes |
-| ``d2a-no-cfg`` | MeanFlow, 1 step | yes | no |
-| ``d2a-no-imagination`` | MeanFlow, 1 step | no | yes |
-| ``mp1`` | MeanFlow, 1 step | no | no |
-| ``dp3`` | diffusion, DDIM 10 steps | no | no |
+| algo | action expert | observation | imagined cloud | adaptive CFG |
+| --- | --- | --- | --- | --- |
+| ``d2a`` | MeanFlow, 1 step | cloud + ``agent_pos`` | yes | yes |
+| ``d2a-no-cfg`` | MeanFlow, 1 step | cloud + ``agent_pos`` | yes | no |
+| ``d2a-no-imagination`` | MeanFlow, 1 step | cloud + ``agent_pos`` | no | yes |
+| ``mp1`` | MeanFlow, 1 step | cloud + ``agent_pos`` | no | no |
+| ``dp3`` | diffusion, DDIM 10 steps | cloud + ``agent_pos`` | no | no |
+| ``mp1-state`` | MeanFlow, 1 step | the simulator's ``state`` | no | no |
+
+``mp1-state`` is the perception reference: the same action expert fed privileged state
+(Meta-World's 39-d observation holds the object positions), i.e. what the expert does with
+perfect perception at the same budget.
+
+The policy owns its normalizers (min/max to [-1, 1]: actions, the low-dimensional
+observation, and the clouds per axis, the imagined cloud with the current cloud's map) and
+applies them the same way in :meth:`Policy.loss` and :meth:`Policy.predict_chunk`: callers
+pass raw observations and actions in env units.
 """
 
 from __future__ import annotations
@@ -27,12 +37,33 @@ from collectors.dataset import Normalizer
 from d2a_agents.policy.networks import EncoderConfig, ObservationEncoder, VelocityNet, VelocityNetConfig
 from d2a_envs.sampling import farthest_point_indices
 
-ALGORITHMS = ("d2a", "d2a-no-cfg", "d2a-no-imagination", "mp1", "dp3")
 IMAGINED_KEY = "imagined_point_cloud"
+CLOUD_KEYS = ("point_cloud", IMAGINED_KEY)  # normalized with the current cloud's normalizer
+
+
+@dataclass(frozen=True)
+class Variant:
+    """What an ``--algo`` name stands for (the one place it is decoded)."""
+
+    expert: str  # "meanflow" or "diffusion"
+    imagination: bool = False
+    cfg: bool = False
+    observation: str = "cloud"  # "cloud" (cloud + agent_pos) or "state" (privileged simulator state)
+
+
+VARIANTS: dict[str, Variant] = {
+    "d2a": Variant("meanflow", imagination=True, cfg=True),
+    "d2a-no-cfg": Variant("meanflow", imagination=True),
+    "d2a-no-imagination": Variant("meanflow", cfg=True),
+    "mp1": Variant("meanflow"),
+    "dp3": Variant("diffusion"),
+    "mp1-state": Variant("meanflow", observation="state"),
+}
+ALGORITHMS = tuple(VARIANTS)
 
 
 def uses_imagination(algo: str) -> bool:
-    return algo in ("d2a", "d2a-no-cfg")
+    return VARIANTS[algo].imagination
 
 
 @dataclass(frozen=True)
@@ -48,6 +79,8 @@ class PolicyConfig:
     n_obs_steps: int = 2
     n_action_steps: int = 4
     num_points: int = 512
+    # MeanFlow's adaptive loss weight 1 / (||delta||^2 + eps)^p (p = 0: plain squared error).
+    adaptive_power: float = 1.0
     # (tau_l, tau_h) of eq. 7 (the paper gives no values). With tau_l = 0 an untrained null
     # branch (rho <= 0) sets w = 0 and the conditional branch first learns the unconditional
     # field: on Hammer at the demo budget, (0, 0.5) scored 0/20, (-1, 0) 1/10, no CFG 2/10.
@@ -64,13 +97,29 @@ class PolicyConfig:
     def __post_init__(self) -> None:
         if self.algo not in ALGORITHMS:
             raise ValueError(f"unknown algo {self.algo!r}; choose one of {ALGORITHMS}")
+        if self.num_points < 1:
+            raise ValueError(f"num_points must be at least 1, not {self.num_points}")
+        variant = self.variant
+        state = variant.observation == "state"
         encoder = dataclasses.replace(
-            self.encoder, n_obs_steps=self.n_obs_steps, use_imagination=uses_imagination(self.algo)
+            self.encoder, n_obs_steps=self.n_obs_steps, use_imagination=variant.imagination, use_cloud=not state,
+            state_key="state" if state else "agent_pos",
         )
         object.__setattr__(self, "encoder", encoder)
         # The time scale belongs to the algorithm: DDPM's 1000 for diffusion, 1 for flows.
-        time_scale = 1000.0 if self.algo == "dp3" else 1.0
+        time_scale = 1000.0 if variant.expert == "diffusion" else 1.0
         object.__setattr__(self, "network", dataclasses.replace(self.network, time_scale=time_scale))
+
+    @property
+    def variant(self) -> Variant:
+        return VARIANTS[self.algo]
+
+    @property
+    def observation_keys(self) -> tuple[str, ...]:
+        """The env observations the policy reads, in the order its windows hold them."""
+        encoder = self.encoder
+        return (("point_cloud",) if encoder.use_cloud else ()) + (encoder.state_key,) + (
+            (IMAGINED_KEY,) if encoder.use_imagination else ())
 
     @property
     def executed_actions(self) -> int:
@@ -86,24 +135,27 @@ class PolicyConfig:
         return cls(**{**raw, "encoder": encoder, "network": network, "cfg_thresholds": tuple(raw["cfg_thresholds"])})
 
 
-# What fits a 2-core CPU: 256 points into the encoders, a third of DP3's encoder widths, a
-# narrower velocity network; gives up resolution and capacity against the paper's sizes.
+# What fits a 2-core CPU: 64 points into the encoders (as ManiFlow on Meta-World), a
+# third of DP3's encoder widths, a narrower velocity network, the plain squared error
+# (p = 0). See POLICY_PRESETS in train.py for the budget and docs/perception.md for the
+# ablations behind it.
 CPU_POLICY_PRESET = PolicyConfig(
-    num_points=256, encoder=EncoderConfig(point_widths=(32, 64, 128)), network=VelocityNetConfig(hidden=128, layers=3)
+    num_points=64, adaptive_power=0.0, encoder=EncoderConfig(point_widths=(32, 64, 128)),
+    network=VelocityNetConfig(hidden=128, layers=3),
 )
 
 
 def make_expert(config: PolicyConfig):
     """The action expert of ``config.algo`` (MeanFlow, with adaptive CFG or not, or diffusion)."""
-    if config.algo == "dp3":
+    if config.variant.expert == "diffusion":
         from d2a_agents.policy.diffusion import Diffusion, DiffusionConfig
 
         return Diffusion(DiffusionConfig())
     from d2a_agents.policy.meanflow import MeanFlow, MeanFlowConfig
 
     tau_l, tau_h = config.cfg_thresholds
-    return MeanFlow(MeanFlowConfig(cfg_enabled=config.algo in ("d2a", "d2a-no-imagination"), tau_l=tau_l, tau_h=tau_h,
-                                   cfg_similarity=config.cfg_similarity))
+    return MeanFlow(MeanFlowConfig(cfg_enabled=config.variant.cfg, tau_l=tau_l, tau_h=tau_h,
+                                   cfg_similarity=config.cfg_similarity, adaptive_power=config.adaptive_power))
 
 
 def subsample_cloud(cloud: torch.Tensor, num_points: int) -> torch.Tensor:
@@ -113,13 +165,28 @@ def subsample_cloud(cloud: torch.Tensor, num_points: int) -> torch.Tensor:
     return cloud[torch.as_tensor(farthest_point_indices(cloud.numpy(), num_points))]
 
 
+def normalizer_keys(config: PolicyConfig) -> tuple[str, ...]:
+    """The normalizers a policy needs: actions, its low-dimensional observation, its clouds."""
+    return ("action", config.encoder.state_key) + (("point_cloud",) if config.encoder.use_cloud else ())
+
+
 class Policy(nn.Module):
-    """Encoders + velocity network + expert + normalizers: everything a checkpoint holds."""
+    """Encoders + velocity network + expert + normalizers: everything a checkpoint holds.
+
+    Example:
+        >>> policy, _ = load_policy("runs/hammer/mp1/policy.pt")   # d2a_agents.policy.train
+        >>> window = {"point_cloud": clouds, "agent_pos": positions}  # (B, n_obs, N, 3), (B, n_obs, 4)
+        >>> policy.predict_chunk(window).shape                       # env units
+        torch.Size([B, 4, 4])
+    """
 
     def __init__(
         self, config: PolicyConfig, action_dim: int, state_dim: int, normalizers: dict[str, Normalizer]
     ) -> None:
         super().__init__()
+        missing = [key for key in normalizer_keys(config) if key not in normalizers]
+        if missing:
+            raise ValueError(f"a {config.algo} policy needs normalizers for {missing}")
         self.config = config
         self.action_dim, self.state_dim = action_dim, state_dim
         self.encoder = ObservationEncoder(config.encoder, state_dim)
@@ -127,20 +194,34 @@ class Policy(nn.Module):
         self.expert = make_expert(config)
         self.normalizers = normalizers
 
+    def normalize_observation(self, observation: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """A raw observation window mapped onto [-1, 1] (clouds per axis), as the encoders read it."""
+        normalized = {}
+        for key in self.config.observation_keys:
+            normalizer = self.normalizers["point_cloud" if key in CLOUD_KEYS else key]
+            normalized[key] = normalizer.normalize(observation[key][..., :3] if key in CLOUD_KEYS else observation[key])
+        return normalized
+
     def condition(self, observation: dict[str, torch.Tensor]) -> torch.Tensor:
-        """f_c from an observation window whose ``agent_pos`` is already normalized."""
-        return self.encoder(observation)
+        """f_c from a raw observation window."""
+        return self.encoder(self.normalize_observation(observation))
 
     def loss(self, observation: dict[str, torch.Tensor], actions: torch.Tensor, generator: torch.Generator | None):
-        """Training loss on a batch of windows (observations normalized, actions normalized)."""
-        return self.expert.loss(self.net, actions, self.condition(observation), generator=generator)
+        """Training loss on a batch of raw windows (observations and actions in env units)."""
+        normalized = self.normalizers["action"].normalize(actions)
+        return self.expert.loss(self.net, normalized, self.condition(observation), generator=generator)
+
+    @torch.no_grad()
+    def sample_normalized(
+        self, observation: dict[str, torch.Tensor], generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        """Action chunks (B, horizon, A) in the normalized action space, from a raw window."""
+        return self.expert.sample(self.net, self.condition(observation), generator=generator)
 
     @torch.no_grad()
     def predict_chunk(self, observation: dict[str, torch.Tensor], generator: torch.Generator | None = None):
         """Action chunk (B, horizon, A) in env units from a raw observation window."""
-        observation = {**observation, "agent_pos": self.normalizers["agent_pos"].normalize(observation["agent_pos"])}
-        actions = self.expert.sample(self.net, self.condition(observation), generator=generator)
-        return self.normalizers["action"].unnormalize(actions)
+        return self.normalizers["action"].unnormalize(self.sample_normalized(observation, generator))
 
 
 class PolicyRunner:
@@ -155,7 +236,7 @@ class PolicyRunner:
 
     def __init__(self, policy: Policy, seed: int = 0) -> None:
         self.policy = policy.eval()
-        self.keys = ["point_cloud", "agent_pos"] + ([IMAGINED_KEY] if policy.config.encoder.use_imagination else [])
+        self.keys = list(policy.config.observation_keys)
         self.generator = torch.Generator().manual_seed(seed)
         self.reset()
 
@@ -187,6 +268,10 @@ class PolicyRunner:
         return action
 
 
+# TorchRL's GymWrapper names the env's ``state`` observation ``observation``; the others keep their names.
+TORCHRL_KEYS = {"state": "observation"}
+
+
 class TorchRLPolicy(TensorDictModuleBase):
     """A :class:`PolicyRunner` as a TorchRL policy: reads the env's observation keys, writes
     ``action``. On the first step of an episode (``is_init``, from an ``InitTracker``) it
@@ -197,13 +282,14 @@ class TorchRLPolicy(TensorDictModuleBase):
     def __init__(self, policy: Policy) -> None:
         super().__init__()
         self.runner = PolicyRunner(policy)
-        self.in_keys = [*self.runner.keys, "is_init", "episode_seed"]
+        self.observation_keys = {key: TORCHRL_KEYS.get(key, key) for key in self.runner.keys}
+        self.in_keys = [*self.observation_keys.values(), "is_init", "episode_seed"]
         self.out_keys = ["action"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if bool(tensordict.get("is_init", torch.ones(1, dtype=torch.bool)).any()):
             self.runner.reset()
             self.runner.generator.manual_seed(int(tensordict.get("episode_seed", torch.zeros(())).reshape(-1)[0]))
-        observation = {key: tensordict.get(key).numpy() for key in self.runner.keys}
+        observation = {key: tensordict.get(name).numpy() for key, name in self.observation_keys.items()}
         tensordict.set("action", torch.as_tensor(self.runner.act(observation)))
         return tensordict

@@ -1,9 +1,12 @@
 """Networks shared by every action expert: observation encoders and the velocity network.
 
 Encoders (DP3 style, paper section III-C): a per-point MLP 3 -> 64 -> 128 -> 256 with
-LayerNorm + ReLU, max-pooled over points and projected to 64, one for the current and one
-for the imagined cloud; an MLP for the robot state; the last ``n_obs_steps`` observations
-of each are concatenated into the condition f_c.
+LayerNorm + ReLU, max-pooled over points and projected to 64 (then LayerNorm, as DP3's
+encoder ends), one for the current and one for the imagined cloud; an MLP for the
+low-dimensional observation (the robot's ``agent_pos``, or the simulator's full ``state`` for
+the privileged reference, which then has no cloud at all); the last ``n_obs_steps``
+observations of each are concatenated into the condition f_c. Clouds arrive normalized
+(per axis to [-1, 1], by the policy's normalizer).
 
 The velocity network u(z, r, t | c) maps a noisy action chunk z (B, T, A), two times r <= t
 in [0, 1] and the condition to a chunk of the same shape. Flow models read it as the
@@ -31,6 +34,9 @@ class EncoderConfig:
     state_hidden: int = 64
     n_obs_steps: int = 2
     use_imagination: bool = True
+    use_cloud: bool = True  # False: the low-dimensional observation alone (the privileged-state reference)
+    state_key: str = "agent_pos"  # the low-dimensional observation: "agent_pos" or the full "state"
+    project_norm: bool = True  # LayerNorm after the cloud projection (DP3); without it the features can collapse
 
 
 @dataclass(frozen=True)
@@ -44,16 +50,17 @@ class VelocityNetConfig:
 
 
 class PointCloudEncoder(nn.Module):
-    """Per-point MLP with LayerNorm + ReLU, max-pool over points, linear projection."""
+    """Per-point MLP with LayerNorm + ReLU, max-pool over points, linear projection (+ LayerNorm)."""
 
-    def __init__(self, widths: tuple[int, ...], out_dim: int, in_dim: int = 3) -> None:
+    def __init__(self, widths: tuple[int, ...], out_dim: int, in_dim: int = 3, project_norm: bool = True) -> None:
         super().__init__()
         layers: list[nn.Module] = []
         for width in widths:
             layers += [nn.Linear(in_dim, width), nn.LayerNorm(width), nn.ReLU()]
             in_dim = width
         self.point_mlp = nn.Sequential(*layers)
-        self.project = nn.Linear(in_dim, out_dim)
+        projection: list[nn.Module] = [nn.Linear(in_dim, out_dim)] + ([nn.LayerNorm(out_dim)] if project_norm else [])
+        self.project = nn.Sequential(*projection)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """(..., N, 3) -> (..., out_dim)."""
@@ -63,23 +70,32 @@ class PointCloudEncoder(nn.Module):
 class ObservationEncoder(nn.Module):
     """f_c from the last ``n_obs_steps`` observations: clouds (and imagined clouds) and state.
 
-    Input: a mapping with ``point_cloud`` (B, n_obs, N, 3), ``agent_pos`` (B, n_obs, D) and,
-    when ``use_imagination``, ``imagined_point_cloud`` (B, n_obs, N, 3).
+    Input: a mapping with ``point_cloud`` (B, n_obs, N, 3) when ``use_cloud``, the
+    ``state_key`` observation (B, n_obs, D) and, when ``use_imagination``,
+    ``imagined_point_cloud`` (B, n_obs, N, 3).
     """
 
     def __init__(self, config: EncoderConfig, state_dim: int) -> None:
         super().__init__()
+        if config.use_imagination and not config.use_cloud:
+            raise ValueError("an encoder that reads the imagined cloud must read the current cloud too")
         self.config = config
-        self.cloud = PointCloudEncoder(config.point_widths, config.embed_dim)
-        self.imagined = PointCloudEncoder(config.point_widths, config.embed_dim) if config.use_imagination else None
+
+        def cloud_encoder() -> PointCloudEncoder:
+            return PointCloudEncoder(config.point_widths, config.embed_dim, project_norm=config.project_norm)
+
+        self.cloud = cloud_encoder() if config.use_cloud else None
+        self.imagined = cloud_encoder() if config.use_imagination else None
         self.state = nn.Sequential(
             nn.Linear(state_dim, config.state_hidden), nn.ReLU(), nn.Linear(config.state_hidden, config.embed_dim)
         )
-        modalities = 3 if config.use_imagination else 2
+        modalities = 1 + int(config.use_cloud) + int(config.use_imagination)
         self.out_dim = config.n_obs_steps * modalities * config.embed_dim
 
     def forward(self, observation: dict[str, torch.Tensor]) -> torch.Tensor:
-        parts = [self.cloud(observation["point_cloud"]), self.state(observation["agent_pos"])]
+        parts = [self.state(observation[self.config.state_key])]
+        if self.cloud is not None:
+            parts.append(self.cloud(observation["point_cloud"]))
         if self.imagined is not None:
             parts.append(self.imagined(observation["imagined_point_cloud"]))
         return torch.cat(parts, dim=-1).flatten(1)

@@ -3,7 +3,10 @@
 AdamW with a warm-up + cosine learning-rate schedule, an exponential moving average of the
 weights (the EMA weights are what gets evaluated and deployed), periodic evaluation in
 the environment, atomic checkpoints that carry the normalizers, the configs and the world
-model's path, and resumption from the last checkpoint after a kill.
+model's path, and resumption from the last checkpoint after a kill. At every evaluation
+and at the end, the perception check (:mod:`d2a_agents.policy.perception`) measures how much
+the policy relies on its clouds and on its low-dimensional observation, on held-out
+episodes when some are held out (``holdout_episodes``), else on training windows.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import torch
 from tensordict import TensorDict
 from tqdm import tqdm
 
-from collectors.dataset import DemoWindows, Normalizer, WindowConfig, fit_normalizers
+from collectors.dataset import DemoWindows, Normalizer, WindowConfig, episode_bounds
 from collectors.evaluation import EvaluationResult, evaluate
 from collectors.storage import DemoDataset
 from d2a_agents.checkpoint import CheckpointError, load_checkpoint, load_for_resume, save_checkpoint
@@ -31,9 +34,11 @@ from d2a_agents.policy.agent import (
     Policy,
     PolicyConfig,
     TorchRLPolicy,
+    normalizer_keys,
     subsample_cloud,
     uses_imagination,
 )
+from d2a_agents.policy.perception import Reliance, reliance
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import Imaginer
 from d2a_envs.tasks import get_task
@@ -57,11 +62,11 @@ class PolicyPreset:
 
 
 POLICY_PRESETS: dict[str, PolicyPreset] = {
-    # A 2-core CPU: the narrow preset network, 4000 steps of batch 32 (about 8 % of the paper's
-    # sample budget) at 10x DP3's learning rate: after 1500 steps on Hammer, one-step samples
-    # on the training windows were off by a normalized MSE of 0.14 at 1e-4 (a constant mean
-    # action: 0.21) and 0.045 at 1e-3.
-    "cpu": PolicyPreset(CPU_POLICY_PRESET, steps=4000, batch_size=32, learning_rate=1e-3),
+    # A 2-core CPU: 64 points, the narrow preset networks, 4000 steps of batch 256 (1.0 M
+    # samples, about half of MP1's released budget) at 10x DP3's learning rate; about 6
+    # minutes on one thread for mp1 (d2a's second encoder adds about half). The ablations
+    # behind it are in docs/perception.md.
+    "cpu": PolicyPreset(CPU_POLICY_PRESET, steps=4000, batch_size=256, learning_rate=1e-3),
     # Section IV of the paper: 1024 points (Meta-World), batch 128, 3000 epochs of 2000
     # demonstration steps (~47k steps), DP3's learning rate.
     "paper": PolicyPreset(PolicyConfig(num_points=1024), steps=47_000, batch_size=128, learning_rate=1e-4),
@@ -82,12 +87,28 @@ class TrainPolicyConfig:
     weight_decay: float = 1e-6
     warmup_steps: int = 100
     ema_decay: float = 0.995
+    holdout_episodes: int = 0  # the last k episodes of each task: never trained on, used by the perception check
+    reliance_windows: int = 512  # windows of the perception check
     eval_every: int = 0  # 0: only at the end
     eval_episodes: int = 20  # 0: no evaluation at all
     eval_workers: int = 1
     checkpoint_every: int = 200
     seed: int = 0
+    device: str = "cpu"  # "cuda" trains on a GPU (evaluation and the checkpoint's policy stay on the CPU)
+    threads: int = 0  # torch threads for training; 0: leave torch's setting
     progress: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "batch_size", "checkpoint_every", "reliance_windows"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, not {getattr(self, name)}")
+        for name in ("holdout_episodes", "eval_every", "eval_episodes", "threads"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must not be negative, not {getattr(self, name)}")
+        if self.eval_workers < 1:
+            raise ValueError(f"eval_workers must be at least 1, not {self.eval_workers}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate must be positive, not {self.learning_rate}")
 
 
 @dataclass
@@ -110,12 +131,16 @@ def _cosine_with_warmup(warmup: int, total: int):
 def training_frames(
     dataset: DemoDataset, config: PolicyConfig, imaginer: Imaginer | None, progress: bool
 ) -> TensorDict:
-    """In-memory frames for the windows: clouds subsampled to ``config.num_points`` by FPS,
-    and, for imagination variants, the world model's imagined cloud of every step."""
+    """In-memory frames for the windows: the observations the policy reads (clouds
+    subsampled to ``config.num_points`` by FPS) and, for imagination variants, the world
+    model's imagined cloud of every step."""
     frames = dataset.frames()
-    clouds = torch.stack([subsample_cloud(c, config.num_points) for c in torch.as_tensor(frames["point_cloud"])])
-    data = {"point_cloud": clouds, "agent_pos": torch.as_tensor(frames["agent_pos"]).float(),
-            "action": torch.as_tensor(frames["action"]).float(), "episode": torch.as_tensor(frames["episode"])}
+    state_key = config.encoder.state_key
+    data = {state_key: torch.as_tensor(frames[state_key]).float(), "action": torch.as_tensor(frames["action"]).float(),
+            "episode": torch.as_tensor(frames["episode"])}
+    if config.encoder.use_cloud:
+        data["point_cloud"] = torch.stack(
+            [subsample_cloud(c, config.num_points) for c in torch.as_tensor(frames["point_cloud"])])
     if imaginer is not None:
         wm = imaginer.config
         table = WorldModelTransitions(frames, imaginer.grid, wm.horizon, wm.action_history)
@@ -124,7 +149,28 @@ def training_frames(
             cloud = imaginer(frames["point_cloud"][table.rows[row]], table.past_actions(torch.tensor(row)))
             imagined.append(subsample_cloud(torch.as_tensor(cloud), config.num_points))
         data[IMAGINED_KEY] = torch.stack(imagined)
-    return TensorDict(data, batch_size=[len(clouds)])
+    return TensorDict(data, batch_size=[len(data["action"])])
+
+
+def split_episodes(frames: TensorDict, tasks: list[str], holdout: int) -> tuple[list[int], list[int]]:
+    """(training, held-out) episode ids: the last ``holdout`` episodes of each task are held out."""
+    ids = episode_bounds(frames)[0].tolist()
+    if holdout == 0:
+        return ids, []
+    per_task = len(ids) // len(tasks)
+    if holdout >= per_task:
+        raise ValueError(f"cannot hold out {holdout} of {per_task} episodes per task")
+    held = [i for k in range(len(tasks)) for i in ids[(k + 1) * per_task - holdout:(k + 1) * per_task]]
+    return [i for i in ids if i not in held], held
+
+
+def fit_policy_normalizers(frames: TensorDict, config: PolicyConfig) -> dict[str, Normalizer]:
+    """Min/max normalizers on the training frames: per dimension for actions and the
+    low-dimensional observation, per axis over every point for the clouds."""
+    data = {key: frames[key] for key in normalizer_keys(config)}
+    if "point_cloud" in data:
+        data["point_cloud"] = data["point_cloud"][..., :3].reshape(-1, 3)
+    return {key: Normalizer.fit(value) for key, value in data.items()}
 
 
 def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, Any]]:
@@ -136,8 +182,12 @@ def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, A
         raise CheckpointError(f"{path} holds a policy configuration this version cannot read ({error!r}); "
                               "train the policy again") from error
     normalizers = {key: Normalizer.from_state_dict(state) for key, state in payload["normalizers"].items()}
-    policy = Policy(config, payload["action_dim"], payload["state_dim"], normalizers)
-    policy.load_state_dict(payload["ema" if ema else "model"])
+    try:
+        policy = Policy(config, payload["action_dim"], payload["state_dim"], normalizers)
+        policy.load_state_dict(payload["ema" if ema else "model"])
+    except (ValueError, RuntimeError) as error:  # normalizers or weights of an older version
+        raise CheckpointError(f"{path} was written by another version of the policy ({error}); "
+                              "train the policy again") from error
     return policy.eval(), payload
 
 
@@ -168,8 +218,18 @@ def evaluate_checkpoint(
                     env_kwargs=eval_env_kwargs(payload, name), workers=workers, progress=progress)
 
 
+def _reliance_batch(windows: DemoWindows, config: TrainPolicyConfig) -> TensorDict:
+    """The fixed windows of the perception check (a seeded draw without replacement)."""
+    generator = torch.Generator().manual_seed(1234)
+    chosen = torch.randperm(len(windows), generator=generator)[: config.reliance_windows]
+    return windows.get(chosen)
+
+
 def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoint]]:
     """Train (or resume) a policy; returns the EMA policy and its evaluation history."""
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    device = torch.device(config.device)
     dataset = DemoDataset.open(config.data)
     if uses_imagination(config.policy.algo) and config.world_model is None:
         raise ValueError(f"algo {config.policy.algo!r} imagines the future: pass --world-model")
@@ -177,25 +237,34 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
     if imaginer is not None and not set(dataset.metadata.tasks) <= set(imaginer_tasks(config.world_model)):
         raise CheckpointError(f"world model {config.world_model} was not trained on every task of {config.data}")
     frames = training_frames(dataset, config.policy, imaginer, config.progress)
-    normalizers = fit_normalizers(frames, keys=("action", "agent_pos"))
-    obs_keys = ("point_cloud", "agent_pos") + ((IMAGINED_KEY,) if imaginer is not None else ())
-    windows = DemoWindows(frames, WindowConfig(config.policy.horizon, config.policy.n_obs_steps,
-                                               config.policy.n_action_steps, obs_keys), normalizers=normalizers)
+    tasks = sorted(dataset.metadata.tasks)
+    train_ids, held_ids = split_episodes(frames, tasks, config.holdout_episodes)
+    normalizers = fit_policy_normalizers(frames[torch.isin(frames["episode"], torch.tensor(train_ids))], config.policy)
+    obs_keys = config.policy.observation_keys
+    window_config = WindowConfig(config.policy.horizon, config.policy.n_obs_steps, config.policy.n_action_steps,
+                                 obs_keys)
+    frames = frames.to(device)
+    windows = DemoWindows(frames, window_config, episodes=train_ids)
+    check_windows = DemoWindows(frames, window_config, episodes=held_ids) if held_ids else windows
+    check_where = "held-out" if held_ids else "training"
+    check_batch = _reliance_batch(check_windows, config)
     torch.manual_seed(config.seed)
-    policy = Policy(config.policy, frames["action"].shape[-1], frames["agent_pos"].shape[-1], normalizers)
+    state_dim = frames[config.policy.encoder.state_key].shape[-1]
+    policy = Policy(config.policy, frames["action"].shape[-1], state_dim, normalizers).to(device)
     ema = copy.deepcopy(policy).requires_grad_(False)
     optimizer = torch.optim.AdamW(policy.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _cosine_with_warmup(config.warmup_steps, config.steps))
-    generator = torch.Generator().manual_seed(config.seed)
+    generator = torch.Generator(device=device).manual_seed(config.seed)
     out = Path(config.out)
     path = out / CHECKPOINT_NAME
     static = {
         "policy_config": config.policy.to_dict(), "action_dim": policy.action_dim, "state_dim": policy.state_dim,
         "normalizers": {key: n.state_dict() for key, n in normalizers.items()}, "world_model": config.world_model,
-        "tasks": sorted(dataset.metadata.tasks), "env_kwargs": dataset.metadata.tasks, "data": str(config.data),
+        "tasks": tasks, "env_kwargs": dataset.metadata.tasks, "data": str(config.data),
+        "held_out_episodes": held_ids,
         "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "policy"},
     }
-    start, history, metrics = 0, [], []
+    start, history, metrics, reliances = 0, [], [], []
     previous = load_for_resume(path, CHECKPOINT_KIND, static, ("policy_config", "world_model", "tasks"))
     if previous is not None:
         policy.load_state_dict(previous["model"])
@@ -204,14 +273,19 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         scheduler.load_state_dict(previous["scheduler"])
         generator.set_state(previous["generator"])
         start, history = previous["step"], [EvaluationPoint(**point) for point in previous["history"]]
-        metrics = previous.get("metrics", [])
+        metrics, reliances = previous.get("metrics", []), previous.get("reliance", [])
 
     def checkpoint(step: int) -> None:
         save_checkpoint(path, CHECKPOINT_KIND, {
             **static, "model": policy.state_dict(), "ema": ema.state_dict(), "optimizer": optimizer.state_dict(),
             "scheduler": scheduler.state_dict(), "generator": generator.get_state(), "step": step,
-            "history": [dataclasses.asdict(point) for point in history], "metrics": metrics,
+            "history": [dataclasses.asdict(point) for point in history], "metrics": metrics, "reliance": reliances,
         })
+
+    def check_perception(step: int) -> Reliance:
+        result = reliance(ema, {key: check_batch["obs", key] for key in obs_keys}, check_batch["action"])
+        reliances.append({"step": step, "where": check_where, **dataclasses.asdict(result)})
+        return result
 
     def evaluate_now(step: int) -> None:
         task = static["tasks"][0]
@@ -227,6 +301,9 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         batch = windows.sample(config.batch_size, generator)
         observation = {key: batch["obs", key] for key in obs_keys}
         loss, info = policy.loss(observation, batch["action"], generator)
+        if not math.isfinite(info["mse"]):
+            raise FloatingPointError(f"the training loss became {info['mse']} at step {step + 1}; "
+                                     f"{path} keeps the last finite checkpoint")
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -240,6 +317,8 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         metrics.append({"step": done, **{key: info[key] for key in LOGGED_METRICS if key in info}})
         evaluating = config.eval_episodes > 0 and (
             (config.eval_every and done % config.eval_every == 0) or done == config.steps)
+        if evaluating or done == config.steps:
+            check_perception(done)
         if evaluating or done % config.checkpoint_every == 0 or done == config.steps:
             checkpoint(done)  # evaluation workers load the policy from this file
         if evaluating:
@@ -247,8 +326,14 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
             checkpoint(done)  # again, with the evaluation in the history
     bar.close()
     if config.progress and start < config.steps:
-        print(f"trained {config.steps - start} steps in {time.perf_counter() - started:.0f} s -> {path}")
-    return ema.eval(), history
+        seconds = time.perf_counter() - started
+        samples = (config.steps - start) * config.batch_size
+        print(f"trained {config.steps - start} steps in {seconds:.0f} s ({samples / seconds:.0f} samples/s, "
+              f"{torch.get_num_threads()} thread(s), {device}) -> {path}")
+    if config.progress and reliances:
+        print("perception check, " + Reliance(**{k: v for k, v in reliances[-1].items()
+                                                 if k not in ("step", "where")}).summary(reliances[-1]["where"]))
+    return ema.cpu().eval(), history
 
 
 def imaginer_tasks(world_model: str | Path) -> list[str]:

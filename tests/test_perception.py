@@ -1,0 +1,74 @@
+"""The perception check: on a synthetic task where one input alone holds the answer, a trained
+policy's one-step error rises when that input is shuffled across windows, not the other."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from collectors.dataset import DemoWindows, WindowConfig
+from d2a_agents.policy.agent import Policy, PolicyConfig
+from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
+from d2a_agents.policy.perception import reliance
+from d2a_agents.policy.train import fit_policy_normalizers
+
+EPISODES, STEPS, POINTS = 24, 6, 16
+
+
+def synthetic_frames(answer_in: str, seed: int = 0) -> TensorDict:
+    """Each episode has a goal g in [-1, 1]^2 and every action is (g, 0, 0). With
+    ``answer_in="cloud"`` the cloud is a blob at (g, 0) and ``agent_pos`` is constant;
+    with ``"agent_pos"`` it is the other way round."""
+    generator = torch.Generator().manual_seed(seed)
+    goals = torch.rand(EPISODES, 2, generator=generator) * 2 - 1
+    rows = goals.repeat_interleave(STEPS, dim=0)
+    n = rows.shape[0]
+    blob = 0.05 * torch.randn(n, POINTS, 3, generator=generator)
+    informative_cloud = blob + torch.cat([rows, torch.zeros(n, 1)], dim=1)[:, None]
+    informative_pos = torch.cat([rows, torch.zeros(n, 2)], dim=1)
+    cloud = informative_cloud if answer_in == "cloud" else blob
+    agent_pos = informative_pos if answer_in == "agent_pos" else torch.zeros(n, 4)
+    return TensorDict({
+        "point_cloud": cloud, "agent_pos": agent_pos, "action": torch.cat([rows, torch.zeros(n, 2)], dim=1),
+        "episode": torch.arange(EPISODES).repeat_interleave(STEPS),
+    }, batch_size=[n])
+
+
+@pytest.mark.parametrize("answer_in", ["cloud", "agent_pos"])
+def test_shuffling_the_informative_input_raises_the_error(answer_in):
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    config = PolicyConfig(algo="mp1", num_points=POINTS, adaptive_power=0.0, horizon=2, n_obs_steps=1,
+                          n_action_steps=2, encoder=EncoderConfig(point_widths=(32, 32)),
+                          network=VelocityNetConfig(hidden=64, layers=2))
+    frames = synthetic_frames(answer_in)
+    policy = Policy(config, 4, 4, fit_policy_normalizers(frames, config))
+    windows = DemoWindows(frames, WindowConfig(2, 1, 2, config.observation_keys))
+    optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
+    generator = torch.Generator().manual_seed(0)
+    for _ in range(300):
+        batch = windows.sample(64, generator)
+        loss, _ = policy.loss({key: batch["obs", key] for key in config.observation_keys}, batch["action"], generator)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    batch = windows.get(torch.arange(len(windows)))
+    result = reliance(policy, {key: batch["obs", key] for key in config.observation_keys}, batch["action"])
+    assert result.windows == len(windows)
+    informative, ignored = ((result.cloud_ratio, result.state_ratio) if answer_in == "cloud"
+                            else (result.state_ratio, result.cloud_ratio))
+    assert informative > 2.0, result
+    assert ignored < 1.5, result
+    assert policy.training  # the check leaves the mode as it found it
+
+
+def test_reliance_needs_two_windows():
+    config = PolicyConfig(algo="mp1", num_points=POINTS, encoder=EncoderConfig(point_widths=(8,)),
+                          network=VelocityNetConfig(hidden=8, layers=1))
+    frames = synthetic_frames("cloud")
+    policy = Policy(config, 4, 4, fit_policy_normalizers(frames, config))
+    one = {"point_cloud": frames["point_cloud"][:1, None], "agent_pos": frames["agent_pos"][:1, None]}
+    with pytest.raises(ValueError, match="at least 2"):
+        reliance(policy, one, torch.zeros(1, 4, 4))
