@@ -134,7 +134,7 @@ def run_cell(config: SuccessBenchConfig, task: str, algo: str, seed: int, data: 
     train_seconds = time.perf_counter() - started
     if config.final_episodes:
         final = evaluate_checkpoint(run / CHECKPOINT_NAME, task, config.final_episodes, config.final_seed,
-                                    workers=config.workers)
+                                    workers=config.workers, end_on_success=True)
         wins, episodes = sum(final.successes), final.episodes
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes

@@ -12,7 +12,7 @@ from torchrl.envs import EnvBase, GymWrapper, StepCounter, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
 
 import d2a_envs
-from d2a_envs.wrappers import SeedEachReset
+from d2a_envs.wrappers import EndOnSuccess, SeedEachReset
 
 # Key of the simulator state under TorchRL: GymWrapper renames a Dict entry "state" to "observation".
 STATE_KEY = "observation"
@@ -46,9 +46,12 @@ class D2AInfoReader(BaseInfoDictReader):
         return self._spec
 
 
-def make_torchrl_env(task: str, env_kwargs: dict[str, Any] | None = None, seed: int | None = None) -> EnvBase:
+def make_torchrl_env(
+    task: str, env_kwargs: dict[str, Any] | None = None, seed: int | None = None, end_on_success: bool = False
+) -> EnvBase:
     """TorchRL env of a D2A task that reports ``success``, ``num_points_in_crop`` and
-    ``episode_seed`` and counts steps (``step_count``).
+    ``episode_seed`` and counts steps (``step_count``); with ``end_on_success``, episodes
+    terminate at their first success (:class:`~d2a_envs.wrappers.EndOnSuccess`).
 
     Every episode gets its own seed (:class:`~d2a_envs.wrappers.SeedEachReset`): with
     ``seed=s`` the episodes use s, s + 1, ... whatever collector drives the env, and each
@@ -60,6 +63,7 @@ def make_torchrl_env(task: str, env_kwargs: dict[str, Any] | None = None, seed: 
         torch.Size([3])
     """
     spec = d2a_envs.get_task(task)
-    env = GymWrapper(SeedEachReset(gym.make(spec.env_id, **(env_kwargs or {})), seed=seed))
+    env = gym.make(spec.env_id, **(env_kwargs or {}))
+    env = GymWrapper(SeedEachReset(EndOnSuccess(env) if end_on_success else env, seed=seed))
     env.set_info_dict_reader(D2AInfoReader())
     return TransformedEnv(env, StepCounter())

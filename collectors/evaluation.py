@@ -43,12 +43,13 @@ class EvaluationResult:
     Attributes:
         task: short task name.
         successes: whether ``success`` was true at any step of the episode (DP3/MP1 convention).
-        returns: sum of the episode's rewards.
+        returns: sum of the episode's rewards (up to its success when ``ended_on_success``).
         seeds: the reset seed of each episode (seed, seed + 1, ...).
         success_steps: 1-based step at which ``success`` first became true, ``None`` if never.
         lengths: steps in each episode.
         workers: worker processes used (1: in this process).
         seconds: wall time of the whole evaluation, worker start-up included.
+        ended_on_success: episodes ended at their first success (success counts are unchanged).
     """
 
     task: str
@@ -59,6 +60,7 @@ class EvaluationResult:
     lengths: list[int] = field(default_factory=list)
     workers: int = 1
     seconds: float = 0.0
+    ended_on_success: bool = False
 
     @property
     def episodes(self) -> int:
@@ -78,19 +80,20 @@ class EvaluationResult:
         seeds = f"{self.seeds[0]}..{self.seeds[-1]}" if len(self.seeds) > 1 else f"{self.seeds[0]}"
         return (
             f"{self.task}: success {sum(self.successes)}/{self.episodes} = {100 * self.success_rate:.1f} % "
-            f"(95 % Wilson {100 * low:.1f}-{100 * high:.1f} %), mean return {self.mean_return:.1f}, "
+            f"(95 % Wilson {100 * low:.1f}-{100 * high:.1f} %), mean return {self.mean_return:.1f}"
+            f"{' up to success' if self.ended_on_success else ''}, "
             f"seeds {seeds}, {self.workers} worker(s), {self.seconds:.1f} s"
         )
 
 
-def _make_eval_env(task: str, env_kwargs: dict[str, Any], seed: int) -> EnvBase:
+def _make_eval_env(task: str, env_kwargs: dict[str, Any], seed: int, end_on_success: bool = False) -> EnvBase:
     """The env of one worker: its episodes use seed, seed + 1, ...; also seeds torch's global
     generator (stochastic policies sample from it) and adds ``is_init`` (:class:`InitTracker`).
 
     Module-level so that spawned workers can unpickle it.
     """
     torch.manual_seed(seed)
-    env = make_torchrl_env(task, env_kwargs, seed=seed)
+    env = make_torchrl_env(task, env_kwargs, seed=seed, end_on_success=end_on_success)
     env.append_transform(InitTracker())
     return env
 
@@ -172,6 +175,7 @@ def evaluate(
     workers: int = 1,
     max_steps: int = d2a_envs.DEFAULT_MAX_EPISODE_STEPS,
     progress: bool = True,
+    end_on_success: bool = False,
 ) -> EvaluationResult:
     """Run ``episodes`` complete episodes of ``task`` with a fresh policy from ``policy_factory``.
 
@@ -188,6 +192,8 @@ def evaluate(
             (capped at ``episodes``), worker i taking the i-th contiguous block of seeds.
         max_steps: steps per episode (the env's time limit; DP3/MP1: 200).
         progress: show a progress bar over episodes.
+        end_on_success: end each episode at its first success: the same success verdicts in
+            less time (a successful policy's episodes are shorter); returns stop there.
 
     Reproducibility: each episode's layout (and point-cloud sampling) depends on its seed
     only, so for a deterministic policy (the scripted experts, a network in eval mode with
@@ -230,7 +236,7 @@ def evaluate(
     try:
         if workers == 1:
             with torch.random.fork_rng(devices=[]):
-                env = _make_eval_env(name, env_kwargs, blocks[0][0])
+                env = _make_eval_env(name, env_kwargs, blocks[0][0], end_on_success)
                 collector = Collector(
                     env, policy_factory=policy_factory, frames_per_batch=max_steps, total_frames=-1,
                     exploration_type=ExplorationType.DETERMINISTIC, auto_register_policy_transforms=False,
@@ -238,7 +244,7 @@ def evaluate(
                 _drain(collector, tally, bar)
         else:
             collector = MultiSyncCollector(
-                [partial(_make_eval_env, name, env_kwargs, block[0]) for block in blocks],
+                [partial(_make_eval_env, name, env_kwargs, block[0], end_on_success) for block in blocks],
                 policy_factory=policy_factory, frames_per_batch=workers * max_steps, total_frames=-1,
                 cat_results="stack", exploration_type=ExplorationType.DETERMINISTIC,
                 auto_register_policy_transforms=False,
@@ -257,6 +263,7 @@ def evaluate(
         lengths=[episode.length for episode in done],
         workers=workers,
         seconds=time.perf_counter() - start,
+        ended_on_success=end_on_success,
     )
 
 

@@ -145,11 +145,12 @@ def cmd_eval(args: argparse.Namespace) -> None:
         from collectors.experts import ScriptedExpert
 
         result = evaluate(functools.partial(ScriptedExpert, args.task), args.task, args.episodes, args.seed,
-                          env_kwargs=_env_kwargs(args), workers=args.workers)
+                          env_kwargs=_env_kwargs(args), workers=args.workers, end_on_success=args.end_on_success)
     else:
         from d2a_agents.policy.train import evaluate_checkpoint
 
-        result = evaluate_checkpoint(args.policy, args.task, args.episodes, args.seed, workers=args.workers)
+        result = evaluate_checkpoint(args.policy, args.task, args.episodes, args.seed, workers=args.workers,
+                                     end_on_success=args.end_on_success)
     print(result.summary())
 
 
@@ -164,6 +165,12 @@ def cmd_bench_latency(args: argparse.Namespace) -> None:
     from benchmarks.latency import LatencyBenchConfig, run
 
     run(LatencyBenchConfig(task=args.task, num_points=args.num_points, repeats=args.repeats))
+
+
+def cmd_bench_train(args: argparse.Namespace) -> None:
+    from benchmarks.train import TrainBenchConfig, run
+
+    run(_replace_given(TrainBenchConfig(), steps=args.steps, threads=args.threads, device=args.device))
 
 
 def cmd_bench_wm(args: argparse.Namespace) -> None:
@@ -307,6 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--policy", required=True, help="policy.pt of d2a train-policy, or 'expert'")
     evaluation.add_argument("--episodes", type=int, default=100)
     evaluation.add_argument("--workers", type=int, default=2)
+    evaluation.add_argument("--end-on-success", action="store_true",
+                            help="end episodes at their first success (same success rate, faster; returns stop there)")
     evaluation.set_defaults(func=cmd_eval)
 
     data = commands.add_parser("data", help="data sets").add_subparsers(dest="what", required=True)
@@ -325,6 +334,12 @@ def build_parser() -> argparse.ArgumentParser:
     bench_latency.add_argument("--num-points", type=int, default=1024)
     bench_latency.add_argument("--repeats", type=int, default=50)
     bench_latency.set_defaults(func=cmd_bench_latency)
+
+    bench_train = bench.add_parser("train", help="policy training throughput (samples/s) per preset and variant")
+    bench_train.add_argument("--steps", type=int, default=None, help="timed steps per row (default 30)")
+    bench_train.add_argument("--threads", type=int, default=None, help="torch threads (default 1)")
+    bench_train.add_argument("--device", default=None, help="cpu (default) or cuda")
+    bench_train.set_defaults(func=cmd_bench_train)
 
     bench_wm = bench.add_parser("wm", help="world model IoU vs ablations and persistence (Table II)")
     bench_wm.add_argument("--task", action="append", default=None, help="default: hammer assembly push basketball")

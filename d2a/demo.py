@@ -129,7 +129,7 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict[str, float]:
     ))
     print(f"4/4 evaluating on {config.eval_episodes} new layouts")
     result = evaluate_checkpoint(run / CHECKPOINT_NAME, config.task, config.eval_episodes, seed=100_000,
-                                 workers=config.eval_workers)
+                                 workers=config.eval_workers, end_on_success=True)
     picture = plot_task_imagination(world_model, config.task, out / "imagination.png", seed=config.seed,
                                     **config.env_kwargs)
     curves = plot_training_curves(run / CHECKPOINT_NAME, world_model, out / "training_curves.png", result)

@@ -86,3 +86,20 @@ class SeedEachReset(gym.Wrapper, gym.utils.RecordConstructorArgs):
         observation, info = self.env.reset(seed=episode_seed, options=options)
         info["episode_seed"] = -1 if episode_seed is None else episode_seed
         return observation, info
+
+
+class EndOnSuccess(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """End an episode (``terminated``) at the first step whose ``info["success"]`` is true.
+
+    For evaluations that only count successes (success = succeeded at any step, the DP3/MP1
+    convention): the verdict is the same as over the full episode, the remaining steps are
+    not simulated, and returns cover the steps up to success only.
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self)
+        gym.Wrapper.__init__(self, env)
+
+    def step(self, action):
+        observation, reward, terminated, truncated, info = self.env.step(action)
+        return observation, reward, terminated or bool(info.get("success", False)), truncated, info

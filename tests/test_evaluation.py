@@ -75,6 +75,15 @@ def test_the_same_seed_gives_the_same_results(expert_result: EvaluationResult) -
     assert again.success_steps == expert_result.success_steps
 
 
+def test_ending_at_success_keeps_the_verdicts_and_shortens_the_episodes(expert_result: EvaluationResult) -> None:
+    short = evaluate(functools.partial(ScriptedExpert, TASK), TASK, 2, seed=0, env_kwargs=ENV_KWARGS, progress=False,
+                     end_on_success=True)
+    assert short.successes == expert_result.successes and short.success_steps == expert_result.success_steps
+    assert short.lengths == expert_result.success_steps  # each episode ends at the step it succeeded
+    assert all(length < 200 for length in short.lengths) and expert_result.lengths == [200, 200]
+    assert short.ended_on_success and "up to success" in short.summary()
+
+
 def test_two_workers_run_the_requested_episodes_with_the_same_results_as_one() -> None:
     policy = functools.partial(ScriptedExpert, TASK)
     kwargs = dict(env_kwargs=ENV_KWARGS, max_steps=60, progress=False)

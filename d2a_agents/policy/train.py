@@ -92,6 +92,7 @@ class TrainPolicyConfig:
     eval_every: int = 0  # 0: only at the end
     eval_episodes: int = 20  # 0: no evaluation at all
     eval_workers: int = 1
+    eval_end_on_success: bool = True  # evaluations count successes only: end episodes there (same verdicts, faster)
     checkpoint_every: int = 200
     seed: int = 0
     device: str = "cpu"  # "cuda" trains on a GPU (evaluation and the checkpoint's policy stay on the CPU)
@@ -205,17 +206,20 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
 
 
 def evaluate_checkpoint(
-    path: str | Path, task: str, episodes: int, seed: int, workers: int = 1, progress: bool = True
+    path: str | Path, task: str, episodes: int, seed: int, workers: int = 1, progress: bool = True,
+    end_on_success: bool = False,
 ) -> EvaluationResult:
     """Evaluate a checkpoint's EMA policy on ``task`` in the env it was trained with (its
     point-cloud settings, its world model when it imagines); a task it was not trained on,
-    or a checkpoint it cannot read, is refused before any worker starts."""
+    or a checkpoint it cannot read, is refused before any worker starts. ``end_on_success``:
+    see :func:`~collectors.evaluation.evaluate`."""
     _, payload = load_policy(path)
     name = get_task(task).name
     if name not in payload["env_kwargs"]:
         raise ValueError(f"{path} was trained on {payload['tasks']}, not on {name}")
     return evaluate(functools.partial(load_torchrl_policy, path), name, episodes, seed,
-                    env_kwargs=eval_env_kwargs(payload, name), workers=workers, progress=progress)
+                    env_kwargs=eval_env_kwargs(payload, name), workers=workers, progress=progress,
+                    end_on_success=end_on_success)
 
 
 def _reliance_batch(windows: DemoWindows, config: TrainPolicyConfig) -> TensorDict:
@@ -290,7 +294,7 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
     def evaluate_now(step: int) -> None:
         task = static["tasks"][0]
         result = evaluate_checkpoint(path, task, config.eval_episodes, seed=10_000, workers=config.eval_workers,
-                                     progress=False)
+                                     progress=False, end_on_success=config.eval_end_on_success)
         history.append(EvaluationPoint(step, result.success_rate, result.episodes))
         bar.write(f"step {step}: {task} success {result.success_rate:.0%} over {result.episodes} episodes")
 
