@@ -11,9 +11,10 @@ Every finished (task, variant, seed) is stored as ``cells/<task>_<algo>_s<seed>.
 checkpoint, so a long run can be killed and restarted.
 
 Two presets: ``paper`` (the paper's protocol shape and the policy's full-size networks:
-3 seeds, 20-episode evaluations, 100 final episodes; GPU work) and ``cpu`` (what fits a
-2-core CPU: one seed, narrow networks, a short training, one final 20-episode evaluation,
-where the two protocols coincide).
+3 seeds, 15 evaluations of 20 episodes, 100 final episodes; GPU work) and ``cpu`` (the same
+protocol shape with the ``cpu`` policy preset: 3 seeds, 5 evaluations of 20 episodes, 100
+final episodes). ``mp1-state``, the same action expert on privileged state, is the
+perception reference: the gap between it and ``mp1`` is what perception costs.
 """
 
 from __future__ import annotations
@@ -50,14 +51,14 @@ class SuccessBenchConfig:
     """What ``d2a bench success`` runs (defaults: the ``cpu`` preset)."""
 
     tasks: tuple[str, ...] = ("hammer", "lever-pull", "assembly", "push", "stick-pull")
-    algos: tuple[str, ...] = ("d2a", "d2a-no-cfg", "mp1", "dp3")
-    seeds: tuple[int, ...] = (0,)
+    algos: tuple[str, ...] = ("d2a", "d2a-no-cfg", "mp1", "dp3", "mp1-state")
+    seeds: tuple[int, ...] = (0, 1, 2)
     demos: int = 10
     workdir: str = "outputs/bench_success"
     policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget of every variant
-    evaluations: int = 1  # periodic evaluations during training, the last one at the final step
+    evaluations: int = 5  # periodic evaluations during training, the last one at the final step
     eval_episodes: int = 20  # per periodic evaluation (the paper: 20)
-    final_episodes: int = 0  # extra evaluation of the final checkpoint; 0: reuse the last periodic one
+    final_episodes: int = 100  # extra evaluation of the final checkpoint; 0: reuse the last periodic one
     world_model: WorldModelConfig = WorldModelConfig(resolution=(32, 32, 8))
     world_model_steps: int = 300
     workers: int = 1
@@ -69,7 +70,7 @@ PRESETS: dict[str, SuccessBenchConfig] = {
     # Section IV of the paper: 20 episodes every 200 of 3000 epochs (15 evaluations), 3 seeds.
     # It gives no world-model budget; 20k steps of batch 4 is our choice.
     "paper": SuccessBenchConfig(
-        seeds=(0, 1, 2), policy=POLICY_PRESETS["paper"], evaluations=15, final_episodes=100,
+        policy=POLICY_PRESETS["paper"], evaluations=15,
         world_model=WorldModelConfig(), world_model_steps=20_000,
     ),
 }

@@ -173,6 +173,18 @@ def cmd_bench_train(args: argparse.Namespace) -> None:
     run(_replace_given(TrainBenchConfig(), steps=args.steps, threads=args.threads, device=args.device))
 
 
+def cmd_bench_ablate(args: argparse.Namespace) -> None:
+    from benchmarks.ablation import AblationConfig, run, table
+
+    if args.table:
+        print(table(args.workdir))
+        return
+    if not (args.data and args.task):
+        raise ValueError("bench ablate needs --data and --task (or --table)")
+    run(AblationConfig(data=args.data, task=args.task, change=args.change, algo=args.algo, seed=args.seed,
+                       world_model=args.world_model, episodes=args.episodes, workdir=args.workdir))
+
+
 def cmd_bench_wm(args: argparse.Namespace) -> None:
     from benchmarks.world_model import WorldModelBenchConfig, run
 
@@ -341,6 +353,19 @@ def build_parser() -> argparse.ArgumentParser:
     bench_train.add_argument("--device", default=None, help="cpu (default) or cuda")
     bench_train.set_defaults(func=cmd_bench_train)
 
+    bench_ablate = bench.add_parser("ablate", help="one change to the cpu policy preset: train, perception check, "
+                                                   "100-episode evaluation; --table sums the runs up")
+    bench_ablate.add_argument("--data", default=None, help="data set directory (d2a collect)")
+    bench_ablate.add_argument("--task", default=None)
+    bench_ablate.add_argument("--change", default="none", help="see benchmarks/ablation.py CHANGES")
+    bench_ablate.add_argument("--algo", choices=ALGOS, default="mp1")
+    bench_ablate.add_argument("--world-model", default=None, help="for the imagination variants")
+    bench_ablate.add_argument("--seed", type=int, default=0)
+    bench_ablate.add_argument("--episodes", type=int, default=100)
+    bench_ablate.add_argument("--workdir", default="outputs/bench_ablation")
+    bench_ablate.add_argument("--table", action="store_true", help="print the table of the finished runs")
+    bench_ablate.set_defaults(func=cmd_bench_ablate)
+
     bench_wm = bench.add_parser("wm", help="world model IoU vs ablations and persistence (Table II)")
     bench_wm.add_argument("--task", action="append", default=None, help="default: hammer assembly push basketball")
     bench_wm.add_argument("--steps", type=int, default=300)
@@ -353,7 +378,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench_success = bench.add_parser("success", help="success rates of d2a / d2a-no-cfg / mp1 / dp3, both protocols")
     bench_success.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
-                               help="cpu: 1 seed, narrow nets, short training; paper: 3 seeds, full protocol (GPU)")
+                               help="cpu: the cpu policy preset, 3 seeds, 5 evaluations + 100 final episodes; "
+                                    "paper: the paper's networks and budget, 15 evaluations (GPU work)")
     bench_success.add_argument("--task", action="append", default=None,
                                help="default: hammer lever-pull assembly push stick-pull")
     bench_success.add_argument("--algo", action="append", default=None,

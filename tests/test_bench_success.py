@@ -40,7 +40,7 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
                           network=VelocityNetConfig(hidden=32, layers=2))
     config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), demos=2, workdir=str(tmp_path),
                                 policy=PolicyPreset(policy, steps=4, batch_size=4, learning_rate=1e-3),
-                                evaluations=evaluations, eval_episodes=1)
+                                evaluations=evaluations, eval_episodes=1, seeds=(0,), final_episodes=0)
     (cell,) = bench.run(config)
     assert (cell.task, cell.algo, cell.seed) == ("reach", "mp1", 0)
     assert len(cell.periodic) == evaluations and cell.final_episodes == 1

@@ -65,7 +65,7 @@ def test_bench_success_options(captured):
     main(["bench", "success", "--task", "push", "--algo", "mp1", "--algo", "dp3", "--seed", "1", "--steps", "9"])
     config = captured["config"]
     assert (config.tasks, config.algos, config.seeds, config.policy.steps) == (("push",), ("mp1", "dp3"), (1,), 9)
-    assert config.policy.batch_size == 256 and config.evaluations == 1
+    assert config.policy.batch_size == 256 and config.evaluations == 5 and config.final_episodes == 100
     main(["bench", "success", "--preset", "paper"])
     paper = captured["config"]
     assert paper.seeds == (0, 1, 2) and paper.evaluations == 15 and paper.final_episodes == 100

@@ -43,6 +43,8 @@ def test_algo_flag_selects_expert_cfg_imagination_and_inputs(algo, expert, cfg, 
     assert policy.config.network.time_scale == time_scale
     if expert is MeanFlow:
         assert policy.expert.config.adaptive_power == 0.5
+    else:
+        assert policy.expert.config.prediction_type == "sample"  # as DP3 configures it
     if cfg is not None:
         assert policy.expert.config.cfg_enabled is cfg
         assert (policy.expert.config.tau_l, policy.expert.config.tau_h) == (-0.5, 0.25)

@@ -81,6 +81,9 @@ class PolicyConfig:
     num_points: int = 512
     # MeanFlow's adaptive loss weight 1 / (||delta||^2 + eps)^p (p = 0: plain squared error).
     adaptive_power: float = 1.0
+    # What the diffusion baseline's network predicts: "sample" (the clean chunk, DP3's
+    # Meta-World configs) or "epsilon" (the noise).
+    diffusion_prediction: str = "sample"
     # (tau_l, tau_h) of eq. 7 (the paper gives no values). With tau_l = 0 an untrained null
     # branch (rho <= 0) sets w = 0 and the conditional branch first learns the unconditional
     # field: on Hammer at the demo budget, (0, 0.5) scored 0/20, (-1, 0) 1/10, no CFG 2/10.
@@ -150,7 +153,7 @@ def make_expert(config: PolicyConfig):
     if config.variant.expert == "diffusion":
         from d2a_agents.policy.diffusion import Diffusion, DiffusionConfig
 
-        return Diffusion(DiffusionConfig())
+        return Diffusion(DiffusionConfig(prediction_type=config.diffusion_prediction))
     from d2a_agents.policy.meanflow import MeanFlow, MeanFlowConfig
 
     tau_l, tau_h = config.cfg_thresholds
