@@ -100,6 +100,7 @@ def cmd_train_wm(args: argparse.Namespace) -> None:
     config = TrainWorldModelConfig(
         data=args.data, out=args.out, model=model, steps=args.steps, batch_size=args.batch_size,
         learning_rate=args.lr, queries=args.queries, validate_every=args.validate_every, seed=args.seed,
+        device=args.device, threads=args.threads,
     )
     _, history = train_world_model(config)
     if history:
@@ -285,6 +286,8 @@ def build_parser() -> argparse.ArgumentParser:
     train_wm.add_argument("--queries", type=int, default=8192)
     train_wm.add_argument("--validate-every", type=int, default=500)
     train_wm.add_argument("--seed", type=int, default=0)
+    train_wm.add_argument("--device", default="cpu", help="cpu or cuda")
+    train_wm.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     train_wm.set_defaults(func=cmd_train_wm)
 
     train_policy = commands.add_parser("train-policy", help="train a policy (d2a, mp1, dp3, ablations)")

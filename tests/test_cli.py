@@ -7,6 +7,7 @@ import pytest
 import benchmarks.success
 import d2a.demo
 import d2a_agents.policy.train
+import d2a_agents.world_model.train
 from d2a.cli import main
 
 
@@ -23,6 +24,7 @@ def captured(monkeypatch) -> dict[str, object]:
         seen["config"] = config
 
     monkeypatch.setattr(d2a_agents.policy.train, "train_policy", train_policy)
+    monkeypatch.setattr(d2a_agents.world_model.train, "train_world_model", train_policy)
     monkeypatch.setattr(benchmarks.success, "run", run)
     monkeypatch.setattr(d2a.demo, "run_demo", run)
     return seen
@@ -44,6 +46,13 @@ def test_train_policy_state_reference_device_threads_and_holdout(captured):
     assert (config.device, config.threads, config.holdout_episodes) == ("cuda", 1, 2)
     assert config.policy.adaptive_power == 0.5
     assert not config.policy.encoder.use_cloud and config.policy.encoder.state_key == "state"
+
+
+def test_train_wm_device_and_threads(captured):
+    main(["train-wm", "--data", "d", "--out", "o.pt", "--device", "cuda", "--threads", "2"])
+    assert (captured["config"].device, captured["config"].threads) == ("cuda", 2)
+    main(["train-wm", "--data", "d", "--out", "o.pt"])
+    assert (captured["config"].device, captured["config"].threads) == ("cpu", 0)
 
 
 def test_the_cli_offers_every_policy_variant():

@@ -36,13 +36,15 @@ def logit(probability: float) -> float:
 def predict_logits(
     model: TriplaneWorldModel, current: torch.Tensor, actions: torch.Tensor, chunk: int = 1 << 16
 ) -> torch.Tensor:
-    """Occupancy logits of every voxel at t + H: (B, X, Y, Z)."""
+    """Occupancy logits of every voxel at t + H: (B, X, Y, Z), on ``current``'s device
+    (the model may sit on another one)."""
     resolution = model.config.resolution
-    features = model.encode(current, actions)
-    queries = normalized_centres(all_voxel_indices(resolution), resolution)
+    device = next(model.parameters()).device
+    features = model.encode(current.to(device), actions.to(device))
+    queries = normalized_centres(all_voxel_indices(resolution), resolution).to(device)
     batch = current.shape[0]
     logits = [model.decode(features, part.unsqueeze(0).expand(batch, -1, -1)) for part in queries.split(chunk)]
-    return torch.cat(logits, dim=1).reshape(current.shape[0], *resolution)
+    return torch.cat(logits, dim=1).reshape(current.shape[0], *resolution).to(current.device)
 
 
 def predict_grid(

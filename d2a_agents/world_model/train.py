@@ -48,6 +48,8 @@ class TrainWorldModelConfig:
     validation_stride: int = 5  # evaluate every k-th held-out transition
     checkpoint_every: int = 100
     seed: int = 0
+    device: str = "cpu"  # "cuda" trains on a GPU (the paper preset's 128x128x32 grid)
+    threads: int = 0  # torch threads; 0: leave torch's setting
     progress: bool = True
     crop_box: tuple[tuple[float, ...], tuple[float, ...]] | None = field(default=None)  # default: the suite's
 
@@ -141,7 +143,10 @@ def _payload(config: TrainWorldModelConfig, dataset: DemoDataset, grid: VoxelGri
 
 
 def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel, list[ValidationResult]]:
-    """Train (or resume) and return the model and its validation history."""
+    """Train (or resume) and return the model (on the CPU) and its validation history."""
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    device = torch.device(config.device)
     dataset = DemoDataset.open(config.data)
     box = CropBox.from_any(config.crop_box) if config.crop_box is not None else dataset_crop_box(dataset)
     grid = VoxelGrid(box, config.model.resolution)
@@ -154,7 +159,7 @@ def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel
     held_out = WorldModelTransitions(frames, grid, model_config.horizon, model_config.action_history, held_out_ids)
 
     torch.manual_seed(config.seed)
-    model = TriplaneWorldModel(model_config)
+    model = TriplaneWorldModel(model_config).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.learning_rate)
     generator = torch.Generator().manual_seed(config.seed)
     payload = _payload(config, dataset, grid)
@@ -182,8 +187,8 @@ def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel
         batch = train.sample(config.batch_size, generator)
         indices, labels = balanced_queries(batch.target, config.queries, config.near_distance, generator)
         queries = (indices.float() + 0.5) / resolution * 2.0 - 1.0
-        logits = model(batch.current, batch.actions, queries)
-        loss = focal_loss(logits, labels, alpha=config.focal_alpha, gamma=config.focal_gamma)
+        logits = model(batch.current.to(device), batch.actions.to(device), queries.to(device))
+        loss = focal_loss(logits, labels.to(device), alpha=config.focal_alpha, gamma=config.focal_gamma)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -202,5 +207,6 @@ def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel
     if start >= config.steps and not history:
         history.append(validate(model, held_out, config.validation_stride, start, calibrate_threshold(model, train)))
     if config.progress:
-        print(f"trained {config.steps - start} steps in {time.perf_counter() - started:.0f} s -> {out}")
-    return model, history
+        print(f"trained {config.steps - start} steps in {time.perf_counter() - started:.0f} s "
+              f"({torch.get_num_threads()} thread(s), {device}) -> {out}")
+    return model.cpu(), history
