@@ -46,6 +46,7 @@ CHANGES: dict[str, Callable[[TrainPolicyConfig], TrainPolicyConfig]] = {
     "points-256": _policy(num_points=256),
     "batch-32": _training(batch_size=32),
     "steps-2000": _training(steps=2000),
+    "trim-after-success-10": _training(trim_after_success=10),
     "diffusion-epsilon": _policy(diffusion_prediction="epsilon"),  # for --algo dp3
 }
 

@@ -130,3 +130,18 @@ def test_a_checkpoint_with_an_unreadable_policy_config_is_refused(reach_data, tm
     torch.save(payload, tmp_path / "old.pt")
     with pytest.raises(CheckpointError, match="cannot read.*cfg_thresholds"):
         load_policy(tmp_path / "old.pt")
+
+
+def test_frames_after_success_are_trimmed_per_episode():
+    from tensordict import TensorDict
+
+    from d2a_agents.policy.train import frames_up_to_success
+
+    success = torch.tensor([0, 0, 1, 1, 1, 0, 0, 0, 0, 1, 1], dtype=torch.bool)  # episodes of 5, 3 and 3 steps
+    frames = TensorDict({"success": success, "episode": torch.tensor([0] * 5 + [1] * 3 + [2] * 3)}, batch_size=[11])
+    keep = frames_up_to_success(frames, keep_after=1)
+    # episode 0 succeeds at its step 2: keep steps 0-3; episode 1 never succeeds: keep all;
+    # episode 2 succeeds at its step 1: keep steps 0-2 (all of it).
+    assert keep.tolist() == [True] * 4 + [False] + [True] * 3 + [True] * 3
+    assert frames_up_to_success(frames, keep_after=0).tolist() == [True] * 3 + [False] * 2 + [True] * 3 + [True] * 2 \
+        + [False]

@@ -88,6 +88,9 @@ class TrainPolicyConfig:
     warmup_steps: int = 100
     ema_decay: float = 0.995
     holdout_episodes: int = 0  # the last k episodes of each task: never trained on, used by the perception check
+    # Keep only this many frames after an episode's first success (-1: keep all). Scripted
+    # experts succeed at steps 59-71 of 200 on Hammer and then hold still: 2/3 of the frames.
+    trim_after_success: int = -1
     reliance_windows: int = 512  # windows of the perception check
     eval_every: int = 0  # 0: only at the end
     eval_episodes: int = 20  # 0: no evaluation at all
@@ -103,6 +106,8 @@ class TrainPolicyConfig:
         for name in ("steps", "batch_size", "checkpoint_every", "reliance_windows"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, not {getattr(self, name)}")
+        if self.trim_after_success < -1:
+            raise ValueError(f"trim_after_success must be -1 (keep all) or >= 0, not {self.trim_after_success}")
         for name in ("holdout_episodes", "eval_every", "eval_episodes", "threads"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must not be negative, not {getattr(self, name)}")
@@ -138,7 +143,7 @@ def training_frames(
     frames = dataset.frames()
     state_key = config.encoder.state_key
     data = {state_key: torch.as_tensor(frames[state_key]).float(), "action": torch.as_tensor(frames["action"]).float(),
-            "episode": torch.as_tensor(frames["episode"])}
+            "episode": torch.as_tensor(frames["episode"]), "success": torch.as_tensor(frames["success"]).bool()}
     if config.encoder.use_cloud:
         data["point_cloud"] = torch.stack(
             [subsample_cloud(c, config.num_points) for c in torch.as_tensor(frames["point_cloud"])])
@@ -151,6 +156,19 @@ def training_frames(
             imagined.append(subsample_cloud(torch.as_tensor(cloud), config.num_points))
         data[IMAGINED_KEY] = torch.stack(imagined)
     return TensorDict(data, batch_size=[len(data["action"])])
+
+
+def frames_up_to_success(frames: TensorDict, keep_after: int) -> torch.Tensor:
+    """Row mask: every frame up to ``keep_after`` steps past its episode's first success
+    (episodes that never succeed are kept whole)."""
+    _, starts, lengths = episode_bounds(frames)
+    success = torch.as_tensor(frames["success"]).reshape(-1).bool()
+    keep = torch.ones(success.numel(), dtype=torch.bool)
+    for start, length in zip(starts.tolist(), lengths.tolist(), strict=True):
+        hits = torch.nonzero(success[start:start + length]).reshape(-1)
+        if hits.numel():
+            keep[start + int(hits[0]) + keep_after + 1:start + length] = False
+    return keep
 
 
 def split_episodes(frames: TensorDict, tasks: list[str], holdout: int) -> tuple[list[int], list[int]]:
@@ -241,6 +259,8 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
     if imaginer is not None and not set(dataset.metadata.tasks) <= set(imaginer_tasks(config.world_model)):
         raise CheckpointError(f"world model {config.world_model} was not trained on every task of {config.data}")
     frames = training_frames(dataset, config.policy, imaginer, config.progress)
+    if config.trim_after_success >= 0:
+        frames = frames[frames_up_to_success(frames, config.trim_after_success)]
     tasks = sorted(dataset.metadata.tasks)
     train_ids, held_ids = split_episodes(frames, tasks, config.holdout_episodes)
     normalizers = fit_policy_normalizers(frames[torch.isin(frames["episode"], torch.tensor(train_ids))], config.policy)
