@@ -311,12 +311,17 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         reliances.append({"step": step, "where": check_where, **dataclasses.asdict(result)})
         return result
 
+    evaluation_seconds = 0.0
+
     def evaluate_now(step: int) -> None:
+        nonlocal evaluation_seconds
+        started_evaluation = time.perf_counter()
         task = static["tasks"][0]
         result = evaluate_checkpoint(path, task, config.eval_episodes, seed=10_000, workers=config.eval_workers,
                                      progress=False, end_on_success=config.eval_end_on_success)
         history.append(EvaluationPoint(step, result.success_rate, result.episodes))
         bar.write(f"step {step}: {task} success {result.success_rate:.0%} over {result.episodes} episodes")
+        evaluation_seconds += time.perf_counter() - started_evaluation
 
     bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc=f"{config.policy.algo} policy",
                disable=not config.progress)
@@ -350,10 +355,11 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
             checkpoint(done)  # again, with the evaluation in the history
     bar.close()
     if config.progress and start < config.steps:
-        seconds = time.perf_counter() - started
+        seconds = time.perf_counter() - started - evaluation_seconds
         samples = (config.steps - start) * config.batch_size
         print(f"trained {config.steps - start} steps in {seconds:.0f} s ({samples / seconds:.0f} samples/s, "
-              f"{torch.get_num_threads()} thread(s), {device}) -> {path}")
+              f"{torch.get_num_threads()} thread(s), {device}; evaluations took {evaluation_seconds:.0f} s more) "
+              f"-> {path}")
     if config.progress and reliances:
         print("perception check, " + Reliance(**{k: v for k, v in reliances[-1].items()
                                                  if k not in ("step", "where")}).summary(reliances[-1]["where"]))
