@@ -48,6 +48,7 @@ CHANGES: dict[str, Callable[[TrainPolicyConfig], TrainPolicyConfig]] = {
     "steps-2000": _training(steps=2000),
     "trim-after-success-10": _training(trim_after_success=10),
     "diffusion-epsilon": _policy(diffusion_prediction="epsilon"),  # for --algo dp3
+    "cfg-amplify": _policy(cfg_guidance="amplify"),  # for the CFG variants
 }
 
 

@@ -126,6 +126,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
     policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
                             n_action_steps=args.n_action_steps, num_points=args.num_points,
                             cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
+                            cfg_guidance=args.cfg_guidance, cfg_scale=args.cfg_scale,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
     config = TrainPolicyConfig(
         data=args.data, out=args.out, policy=policy, world_model=args.world_model, steps=preset.steps,
@@ -312,6 +313,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "with v the sampled velocity (MeanFlow's CFG reading)")
     train_policy.add_argument("--cfg-thresholds", type=float, nargs=2, default=None, metavar=("TAU_L", "TAU_H"),
                               help="eq. 7 thresholds (default -1 0)")
+    train_policy.add_argument("--cfg-guidance", choices=("interpolate", "amplify"), default=None,
+                              help="interpolate: eq. 6 as written (towards the unconditional field, default); "
+                                   "amplify: mixing weight 1 + cfg_scale * w (away from it, as MeanFlow guides)")
+    train_policy.add_argument("--cfg-scale", type=float, default=None, help="k of --cfg-guidance amplify (default 1)")
     train_policy.add_argument("--adaptive-power", type=float, default=None,
                               help="MeanFlow's adaptive loss power p (0: plain squared error; default: the preset's)")
     train_policy.add_argument("--holdout-episodes", type=int, default=0,

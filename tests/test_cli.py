@@ -41,10 +41,11 @@ def test_train_policy_defaults_to_the_cpu_preset_and_flags_override_it(captured)
 
 def test_train_policy_state_reference_device_threads_and_holdout(captured):
     main(["train-policy", "--data", "d", "--out", "o", "--algo", "mp1-state", "--device", "cuda", "--threads", "1",
-          "--holdout-episodes", "2", "--adaptive-power", "0.5"])
+          "--holdout-episodes", "2", "--adaptive-power", "0.5", "--cfg-guidance", "amplify", "--cfg-scale", "2"])
     config = captured["config"]
     assert (config.device, config.threads, config.holdout_episodes) == ("cuda", 1, 2)
     assert config.policy.adaptive_power == 0.5
+    assert (config.policy.cfg_guidance, config.policy.cfg_scale) == ("amplify", 2.0)
     assert not config.policy.encoder.use_cloud and config.policy.encoder.state_key == "state"
 
 

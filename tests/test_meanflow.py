@@ -218,6 +218,24 @@ def test_guided_velocity_follows_eq6_with_hand_values():
     torch.testing.assert_close(v_cfg, v)
 
 
+def test_amplifying_guidance_moves_away_from_the_unconditional_field():
+    """cfg_guidance="amplify": v_cfg = s v + (1 - s) u_null, s = 1 + k w (hand values, velocity gate)."""
+    net = ConstantNet(null=[1.0, 0.0], conditional=[1.0, 1.0])
+    v = torch.tensor([[[1.0, 2.0]], [[-1.0, 1.0]], [[3.0, 0.0]]])  # w = 2/sqrt(5), 0, 1
+    z, t, cond = torch.zeros(3, 1, 2), torch.full((3,), 0.5), torch.zeros(3, 1)
+    expert = MeanFlow(MeanFlowConfig(tau_l=0.0, tau_h=0.5, cfg_similarity="velocity", cfg_guidance="amplify",
+                                     cfg_scale=2.0))
+    v_cfg, w, _ = expert.guided_velocity(net, z, t, v, cond)
+    scale = 1 + 2.0 * (2 / math.sqrt(5))
+    expected = torch.tensor([[[scale * 1.0 + (1 - scale) * 1.0, scale * 2.0]],  # first: s = 1 + 2 w
+                             [[-1.0, 1.0]],  # w = 0: plain v
+                             [[3 * 3.0 - 2 * 1.0, 0.0]]])  # w = 1: s = 3
+    torch.testing.assert_close(w, torch.tensor([2 / math.sqrt(5), 0.0, 1.0]))
+    torch.testing.assert_close(v_cfg, expected)
+    with pytest.raises(ValueError, match="cfg_guidance"):
+        MeanFlowConfig(cfg_guidance="extrapolate")
+
+
 def test_dropped_rows_ignore_the_condition():
     net = random_velocity_net(horizon=4, action_dim=3, cond_dim=6)
     gen = torch.Generator().manual_seed(0)

@@ -35,7 +35,8 @@ def tiny_policy(algo: str, **changes) -> Policy:
     ("mp1-state", MeanFlow, False, False, ("state",), 1.0),
 ])
 def test_algo_flag_selects_expert_cfg_imagination_and_inputs(algo, expert, cfg, imagination, keys, time_scale):
-    policy = tiny_policy(algo, cfg_thresholds=(-0.5, 0.25), cfg_similarity="velocity", adaptive_power=0.5)
+    policy = tiny_policy(algo, cfg_thresholds=(-0.5, 0.25), cfg_similarity="velocity", adaptive_power=0.5,
+                         cfg_guidance="amplify", cfg_scale=3.0)
     assert isinstance(policy.expert, expert)
     assert policy.config.encoder.use_imagination is imagination
     assert policy.config.observation_keys == keys
@@ -49,6 +50,7 @@ def test_algo_flag_selects_expert_cfg_imagination_and_inputs(algo, expert, cfg, 
         assert policy.expert.config.cfg_enabled is cfg
         assert (policy.expert.config.tau_l, policy.expert.config.tau_h) == (-0.5, 0.25)
         assert policy.expert.config.cfg_similarity == "velocity"  # not the default
+        assert (policy.expert.config.cfg_guidance, policy.expert.config.cfg_scale) == ("amplify", 3.0)
 
 
 def test_config_round_trip_and_bad_algo():

@@ -94,6 +94,10 @@ class PolicyConfig:
     # per seed): "velocity" 0 / 0 / 0 %, "prediction" 6 / 12 / 0 %, no gate (condition dropout only)
     # 20 / 22 %, mp1 18 / 20 / 24 %; see d2a_agents/policy/meanflow.py for why.
     cfg_similarity: str = "prediction"
+    # "interpolate" (eq. 6 as written, w in [0, 1]) or "amplify" (mixing weight 1 + cfg_scale * w,
+    # guidance away from the unconditional field as MeanFlow / MP1 guide); see meanflow.py.
+    cfg_guidance: str = "interpolate"
+    cfg_scale: float = 1.0
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     network: VelocityNetConfig = field(default_factory=VelocityNetConfig)
 
@@ -158,7 +162,8 @@ def make_expert(config: PolicyConfig):
 
     tau_l, tau_h = config.cfg_thresholds
     return MeanFlow(MeanFlowConfig(cfg_enabled=config.variant.cfg, tau_l=tau_l, tau_h=tau_h,
-                                   cfg_similarity=config.cfg_similarity, adaptive_power=config.adaptive_power))
+                                   cfg_similarity=config.cfg_similarity, adaptive_power=config.adaptive_power,
+                                   cfg_guidance=config.cfg_guidance, cfg_scale=config.cfg_scale))
 
 
 def subsample_cloud(cloud: torch.Tensor, num_points: int) -> torch.Tensor:

@@ -56,6 +56,7 @@ from torch import nn
 from torch.func import jvp
 
 CFG_SIMILARITIES = ("velocity", "prediction")
+CFG_GUIDANCES = ("interpolate", "amplify")
 
 
 @dataclass(frozen=True)
@@ -90,6 +91,13 @@ class MeanFlowConfig:
     tau_l: float = 0.0
     tau_h: float = 0.5
     cfg_similarity: str = "prediction"
+    # How the gate w of eq. 7 shapes the target. "interpolate" (the paper's eq. 6 as written):
+    # v_cfg = w v + (1 - w) u_null, w in [0, 1], only ever towards the unconditional field.
+    # "amplify" (guidance as MeanFlow and MP1 use it, gated): v_cfg = s v + (1 - s) u_null with
+    # s = 1 + cfg_scale * w, i.e. away from the unconditional field by up to cfg_scale where the
+    # two predictions agree (w = 1) and plain v where they disagree (w = 0).
+    cfg_guidance: str = "interpolate"
+    cfg_scale: float = 1.0
     inference_steps: int = 1
 
     def __post_init__(self) -> None:
@@ -105,6 +113,10 @@ class MeanFlowConfig:
             raise ValueError("CFG thresholds need -1 <= tau_l < tau_h <= 1")
         if self.cfg_similarity not in CFG_SIMILARITIES:
             raise ValueError(f"cfg_similarity must be one of {CFG_SIMILARITIES}, got {self.cfg_similarity!r}")
+        if self.cfg_guidance not in CFG_GUIDANCES:
+            raise ValueError(f"cfg_guidance must be one of {CFG_GUIDANCES}, got {self.cfg_guidance!r}")
+        if self.cfg_scale < 0:
+            raise ValueError("cfg_scale must be >= 0")
         if self.inference_steps < 1:
             raise ValueError("inference_steps must be >= 1")
 
@@ -172,6 +184,7 @@ class MeanFlow:
         self, net: nn.Module, z: torch.Tensor, t: torch.Tensor, v: torch.Tensor, cond: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Eq. 6-7: v_cfg = w v + (1 - w) u(z, t, t | null), w = cfg_weight(rho); returns (v_cfg, w, rho).
+        With ``cfg_guidance="amplify"`` the mixing weight is 1 + cfg_scale * w instead of w.
 
         rho = cos(v, u_null) (the paper) or cos(u_cond, u_null) (``cfg_similarity``). The
         predictions are target ingredients only, so they are taken without gradient; the
@@ -188,7 +201,8 @@ class MeanFlow:
                 u_null, reference = both[:batch], both[batch:]
         rho = F.cosine_similarity(reference.flatten(1), u_null.flatten(1), dim=1)
         w = cfg_weight(rho, self.config.tau_l, self.config.tau_h)
-        return _per_sample(w, v) * v + _per_sample(1 - w, v) * u_null, w, rho
+        mix = 1 + self.config.cfg_scale * w if self.config.cfg_guidance == "amplify" else w
+        return _per_sample(mix, v) * v + _per_sample(1 - mix, v) * u_null, w, rho
 
     def loss(
         self, net: nn.Module, actions: torch.Tensor, cond: torch.Tensor, generator: torch.Generator | None = None
