@@ -36,9 +36,21 @@ def _training(**changes: object) -> Callable[[TrainPolicyConfig], TrainPolicyCon
     return lambda config: dataclasses.replace(config, **changes)
 
 
-# name -> the one change to the cpu preset
+def _previous_preset(config: TrainPolicyConfig) -> TrainPolicyConfig:
+    """The cpu preset before the perception work: 256 raw-metre points, batch 32, p = 1, no
+    LayerNorm after the cloud projection (benchmarks/train.py's reference row)."""
+    from benchmarks.train import PREVIOUS_CPU_PRESET
+
+    preset = PREVIOUS_CPU_PRESET
+    policy = dataclasses.replace(preset.policy, algo=config.policy.algo, normalize_clouds=False)
+    return dataclasses.replace(config, policy=policy, steps=preset.steps, batch_size=preset.batch_size,
+                               learning_rate=preset.learning_rate)
+
+
+# name -> the one change to the cpu preset ("previous-preset": every change at once, undone)
 CHANGES: dict[str, Callable[[TrainPolicyConfig], TrainPolicyConfig]] = {
     "none": _training(),
+    "raw-clouds": _policy(normalize_clouds=False),
     "adaptive-power-1": _policy(adaptive_power=1.0),
     "adaptive-power-0.5": _policy(adaptive_power=0.5),
     "no-projection-layernorm": _encoder(project_norm=False),
@@ -49,6 +61,7 @@ CHANGES: dict[str, Callable[[TrainPolicyConfig], TrainPolicyConfig]] = {
     "trim-after-success-10": _training(trim_after_success=10),
     "diffusion-epsilon": _policy(diffusion_prediction="epsilon"),  # for --algo dp3
     "cfg-amplify": _policy(cfg_guidance="amplify"),  # for the CFG variants
+    "previous-preset": _previous_preset,
 }
 
 

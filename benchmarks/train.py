@@ -25,7 +25,7 @@ from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, fit_policy_nor
 # The cpu preset before the perception work: 256 points, batch 32, MeanFlow's adaptive
 # weight p = 1 and no LayerNorm after the cloud projection (kept here as the reference row).
 PREVIOUS_CPU_PRESET = PolicyPreset(
-    PolicyConfig(num_points=256, adaptive_power=1.0,
+    PolicyConfig(num_points=256, adaptive_power=1.0, normalize_clouds=False,
                  encoder=EncoderConfig(point_widths=(32, 64, 128), project_norm=False),
                  network=VelocityNetConfig(hidden=128, layers=3)),
     steps=4000, batch_size=32, learning_rate=1e-3,

@@ -108,3 +108,18 @@ def test_a_policy_without_its_normalizers_is_refused():
     with pytest.raises(ValueError, match="point_cloud"):
         Policy(PolicyConfig(algo="mp1", **TINY), 4, 4, normalizers)
     Policy(PolicyConfig(algo="mp1-state", **TINY), 4, 4, normalizers)  # reads no cloud
+
+
+def test_raw_clouds_get_the_identity_normalizer():
+    from tensordict import TensorDict
+
+    from d2a_agents.policy.train import fit_policy_normalizers
+
+    frames = TensorDict({"point_cloud": torch.rand(5, 8, 3) * 3 + 2, "agent_pos": torch.rand(5, 4),
+                         "action": torch.rand(5, 4)}, batch_size=[5])
+    cloud = frames["point_cloud"][:1]
+    fitted = fit_policy_normalizers(frames, PolicyConfig(algo="mp1", **TINY))["point_cloud"]
+    raw = fit_policy_normalizers(frames, PolicyConfig(algo="mp1", normalize_clouds=False, **TINY))["point_cloud"]
+    torch.testing.assert_close(raw.normalize(cloud), cloud)
+    low, high = frames["point_cloud"].reshape(-1, 3).amin(0), frames["point_cloud"].reshape(-1, 3).amax(0)
+    torch.testing.assert_close(fitted.normalize(cloud), (cloud - (low + high) / 2) / ((high - low) / 2))

@@ -79,6 +79,9 @@ class PolicyConfig:
     n_obs_steps: int = 2
     n_action_steps: int = 4
     num_points: int = 512
+    # Map clouds per axis onto [-1, 1] with the min/max of the training clouds (DP3, MP1).
+    # False feeds raw metres (an ablation: the encoder then barely sees a 10 cm move).
+    normalize_clouds: bool = True
     # MeanFlow's adaptive loss weight 1 / (||delta||^2 + eps)^p (p = 0: plain squared error).
     adaptive_power: float = 1.0
     # What the diffusion baseline's network predicts: "sample" (the clean chunk, DP3's

@@ -185,11 +185,15 @@ def split_episodes(frames: TensorDict, tasks: list[str], holdout: int) -> tuple[
 
 def fit_policy_normalizers(frames: TensorDict, config: PolicyConfig) -> dict[str, Normalizer]:
     """Min/max normalizers on the training frames: per dimension for actions and the
-    low-dimensional observation, per axis over every point for the clouds."""
+    low-dimensional observation, per axis over every point for the clouds (the identity
+    when ``config.normalize_clouds`` is off)."""
     data = {key: frames[key] for key in normalizer_keys(config)}
+    normalizers = {}
     if "point_cloud" in data:
-        data["point_cloud"] = data["point_cloud"][..., :3].reshape(-1, 3)
-    return {key: Normalizer.fit(value) for key, value in data.items()}
+        clouds = data.pop("point_cloud")[..., :3].reshape(-1, 3)
+        normalizers["point_cloud"] = (Normalizer.fit(clouds) if config.normalize_clouds
+                                      else Normalizer(-torch.ones(3), torch.ones(3)))
+    return {**normalizers, **{key: Normalizer.fit(value) for key, value in data.items()}}
 
 
 def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, Any]]:
