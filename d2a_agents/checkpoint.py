@@ -29,7 +29,8 @@ def load_checkpoint(path: str | Path, kind: str) -> dict[str, Any]:
     if not path.is_file():
         raise CheckpointError(f"no checkpoint at {path}")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
+        # weights_only: tensors and plain containers only, so a crafted pickle cannot run code
+        payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for a file that is not a checkpoint
         raise CheckpointError(f"{path} is not a readable checkpoint: {error}") from error
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
