@@ -55,6 +55,12 @@ def load_for_resume(
         return None
     previous = load_checkpoint(path, kind)
     for key in keys:
-        if previous.get(key) != expected[key]:
-            raise CheckpointError(f"{path} was trained with another {key} ({previous.get(key)}); choose another --out")
+        old, new = previous.get(key), expected[key]
+        if old != new:
+            if isinstance(old, dict) and isinstance(new, dict):
+                differences = ", ".join(f"{name}: {old.get(name)!r} -> {new.get(name)!r}"
+                                        for name in sorted(set(old) | set(new)) if old.get(name) != new.get(name))
+                raise CheckpointError(f"{path} was trained with another {key} ({differences}); "
+                                      "choose another --out to start afresh")
+            raise CheckpointError(f"{path} was trained with another {key} ({old}); choose another --out")
     return previous

@@ -121,6 +121,9 @@ def test_imagination_variants_need_a_fitting_world_model(reach_data, tmp_path):
     train_policy(policy_config("mp1", reach_data, tmp_path / "run", steps=1))
     with pytest.raises(CheckpointError, match="another policy_config"):
         train_policy(policy_config("dp3", reach_data, tmp_path / "run", steps=2))
+    other_lr = dataclasses.replace(policy_config("mp1", reach_data, tmp_path / "run", steps=2), learning_rate=0.5)
+    with pytest.raises(CheckpointError, match="another run_config.*learning_rate: 0.001 -> 0.5"):
+        train_policy(other_lr)  # resuming with another learning rate would mix two runs
 
 
 def test_a_checkpoint_with_an_unreadable_policy_config_is_refused(reach_data, tmp_path):

@@ -44,6 +44,10 @@ from d2a_agents.world_model.imagine import Imaginer
 from d2a_envs.tasks import get_task
 
 CHECKPOINT_KIND = "policy"
+# TrainPolicyConfig fields a resumed run may change (how long, how often, where it runs);
+# every other field must match the checkpoint's, or the resume would mix two runs.
+RESUMABLE_CHANGES = ("out", "steps", "eval_every", "eval_episodes", "eval_workers", "eval_end_on_success",
+                     "checkpoint_every", "device", "threads", "progress")
 CHECKPOINT_NAME = "policy.pt"
 # Per-step training figures kept in the checkpoint (``metrics``): the unweighted MSE and, with
 # adaptive CFG, the batch means of the gate w and of rho (eq. 7) and the fraction of the batch
@@ -291,9 +295,11 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
         "tasks": tasks, "env_kwargs": dataset.metadata.tasks, "data": str(config.data),
         "held_out_episodes": held_ids,
         "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "policy"},
+        "run_config": {k: v for k, v in dataclasses.asdict(config).items()
+                       if k not in RESUMABLE_CHANGES and k != "policy"},
     }
     start, history, metrics, reliances = 0, [], [], []
-    previous = load_for_resume(path, CHECKPOINT_KIND, static, ("policy_config", "world_model", "tasks"))
+    previous = load_for_resume(path, CHECKPOINT_KIND, static, ("policy_config", "world_model", "tasks", "run_config"))
     if previous is not None:
         policy.load_state_dict(previous["model"])
         ema.load_state_dict(previous["ema"])
