@@ -148,3 +148,13 @@ def test_frames_after_success_are_trimmed_per_episode():
     assert keep.tolist() == [True] * 4 + [False] + [True] * 3 + [True] * 3
     assert frames_up_to_success(frames, keep_after=0).tolist() == [True] * 3 + [False] * 2 + [True] * 3 + [True] * 2 \
         + [False]
+
+
+def test_world_model_resume_refuses_other_training_settings(reach_data, world_model):
+    config = TrainWorldModelConfig(data=reach_data, out=world_model, model=WorldModelConfig(resolution=(16, 16, 8)),
+                                   steps=2, batch_size=2, queries=256, validate_every=2, validation_stride=20,
+                                   learning_rate=0.5, progress=False)
+    before = load_checkpoint(world_model, "world_model")["step"]
+    with pytest.raises(CheckpointError, match="another run_config.*learning_rate: 0.001 -> 0.5"):
+        train_world_model(config)
+    assert load_checkpoint(world_model, "world_model")["step"] == before

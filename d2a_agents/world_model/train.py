@@ -29,6 +29,11 @@ from d2a_envs.sampling import CropBox
 from d2a_envs.tasks import get_task
 
 
+# TrainWorldModelConfig fields a resumed run may change; the others must match the checkpoint's.
+RESUMABLE_CHANGES = ("out", "model", "steps", "validate_every", "validation_stride", "checkpoint_every", "device",
+                     "threads", "progress")
+
+
 @dataclass(frozen=True)
 class TrainWorldModelConfig:
     """Every knob of ``d2a train-wm`` (model sizes live in ``model``)."""
@@ -139,6 +144,7 @@ def _payload(config: TrainWorldModelConfig, dataset: DemoDataset, grid: VoxelGri
         "env_kwargs": dataset.metadata.tasks,
         "num_points": int(dataset.frames()["point_cloud"].shape[1]),
         "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "model"},
+        "run_config": {k: v for k, v in dataclasses.asdict(config).items() if k not in RESUMABLE_CHANGES},
     }
 
 
@@ -165,7 +171,7 @@ def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel
     payload = _payload(config, dataset, grid)
     start, history = 0, []
     out = Path(config.out)
-    previous = load_for_resume(out, CHECKPOINT_KIND, payload, ("config", "grid", "tasks"))
+    previous = load_for_resume(out, CHECKPOINT_KIND, payload, ("config", "grid", "tasks", "run_config"))
     if previous is not None:
         model.load_state_dict(previous["model"])
         optimizer.load_state_dict(previous["optimizer"])
@@ -189,6 +195,9 @@ def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel
         queries = (indices.float() + 0.5) / resolution * 2.0 - 1.0
         logits = model(batch.current.to(device), batch.actions.to(device), queries.to(device))
         loss = focal_loss(logits, labels.to(device), alpha=config.focal_alpha, gamma=config.focal_gamma)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"the world-model loss became {loss.item()} at step {step + 1}; "
+                                     f"{out} keeps the last finite checkpoint")
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
