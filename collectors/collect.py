@@ -114,6 +114,7 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
             success = bool(rollout["next", "success"].any())
             if success:
                 index = len(dataset.metadata.episodes)
+                record.kept += 1  # before add_episode: its metadata write commits the episode and the count together
                 dataset.add_episode(
                     episode_frames(rollout, index),
                     EpisodeRecord(
@@ -122,7 +123,6 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
                         attempt=episode_seed - record.seed, min_points_in_crop=int(rollout["num_points_in_crop"].min()),
                     ),
                 )
-                record.kept += 1
                 bar.update(1)
             dataset.commit()
             bar.set_postfix(tried=record.attempts)

@@ -135,3 +135,19 @@ def test_seed_each_reset_gives_consecutive_seeds():
     np.testing.assert_array_equal(plain.reset(seed=6)[0]["state"], states[1])
     _, info = env.reset(seed=100)
     assert info["episode_seed"] == 100 and env.reset()[1]["episode_seed"] == 101
+
+
+def test_an_episode_is_committed_with_its_count(tmp_path, monkeypatch):
+    """A collection killed right after an episode's metadata write (before any later save)
+    resumes without storing that episode twice: the episode and the kept count are one write."""
+
+    def killed(self):
+        raise KeyboardInterrupt  # the process dies before the next metadata save
+
+    monkeypatch.setattr(DemoDataset, "commit", killed)
+    with pytest.raises(KeyboardInterrupt):
+        collect(config(tmp_path / "data", episodes=1))
+    monkeypatch.undo()
+    on_disk = DemoDataset.open(tmp_path / "data").metadata
+    assert len(on_disk.episodes) == 1 and on_disk.collections[0].kept == 1
+    assert len(collect(config(tmp_path / "data", episodes=1, append=True)).metadata.episodes) == 1
