@@ -56,7 +56,8 @@ class PointCloudEncoder(nn.Module):
         super().__init__()
         layers: list[nn.Module] = []
         for width in widths:
-            layers += [nn.Linear(in_dim, width), nn.LayerNorm(width), nn.ReLU()]
+            # in place: the per-point activations dominate a training step's memory traffic
+            layers += [nn.Linear(in_dim, width), nn.LayerNorm(width), nn.ReLU(inplace=True)]
             in_dim = width
         self.point_mlp = nn.Sequential(*layers)
         projection: list[nn.Module] = [nn.Linear(in_dim, out_dim)] + ([nn.LayerNorm(out_dim)] if project_norm else [])
