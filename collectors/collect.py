@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 from torchrl.collectors import Collector
 from tqdm import tqdm
 
@@ -145,6 +146,11 @@ def collect(config: CollectConfig) -> DemoDataset:
     no_expert = [spec.name for spec in specs if spec.suite != "metaworld"]
     if no_expert:
         raise ValueError(f"no scripted expert for {no_expert}: demonstrations can be collected for Meta-World tasks")
+    if config.max_episode_steps < 1 or config.max_attempts_factor < 1:
+        raise ValueError("max_episode_steps and max_attempts_factor must be at least 1")
+    # Bad env settings (num_points 0, an unknown camera...) fail here, before the output
+    # directory is touched: --overwrite must not wipe a data set for a run that cannot start.
+    gym.make(specs[0].env_id, **_env_kwargs(config)).close()
     dataset = _open_output(config)
     for spec in specs:
         record = collect_task(dataset, spec.name, config)

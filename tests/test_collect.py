@@ -151,3 +151,16 @@ def test_an_episode_is_committed_with_its_count(tmp_path, monkeypatch):
     on_disk = DemoDataset.open(tmp_path / "data").metadata
     assert len(on_disk.episodes) == 1 and on_disk.collections[0].kept == 1
     assert len(collect(config(tmp_path / "data", episodes=1, append=True)).metadata.episodes) == 1
+
+
+def test_bad_settings_are_refused_before_an_existing_data_set_is_touched(reach_dataset, tmp_path):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(reach_dataset.directory, copy)
+    before = (copy / METADATA_FILE).read_text()
+    bad = config(copy, overwrite=True, env_kwargs={**ENV_KWARGS, "num_points": 0})
+    with pytest.raises(ValueError, match="num_points"):
+        collect(bad)
+    assert (copy / METADATA_FILE).read_text() == before
+    assert len(DemoDataset.open(copy).metadata.episodes) == len(reach_dataset.metadata.episodes)
