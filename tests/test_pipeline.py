@@ -158,3 +158,9 @@ def test_world_model_resume_refuses_other_training_settings(reach_data, world_mo
     with pytest.raises(CheckpointError, match="another run_config.*learning_rate: 0.001 -> 0.5"):
         train_world_model(config)
     assert load_checkpoint(world_model, "world_model")["step"] == before
+
+
+def test_bad_world_model_settings_are_refused():
+    for field, value in (("steps", 0), ("batch_size", -1), ("queries", 0), ("validate_every", 0), ("learning_rate", 0.0)):
+        with pytest.raises(ValueError, match=field):
+            TrainWorldModelConfig(data="d", out="o.pt", **{field: value})

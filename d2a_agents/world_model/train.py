@@ -58,6 +58,17 @@ class TrainWorldModelConfig:
     progress: bool = True
     crop_box: tuple[tuple[float, ...], tuple[float, ...]] | None = field(default=None)  # default: the suite's
 
+    def __post_init__(self) -> None:
+        for name in ("steps", "batch_size", "queries", "validate_every", "validation_stride", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, not {getattr(self, name)}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate must be positive, not {self.learning_rate}")
+        if self.threads < 0:
+            raise ValueError(f"threads must not be negative, not {self.threads}")
+        if not 0 < self.holdout_fraction < 1:
+            raise ValueError(f"holdout_fraction must lie in (0, 1), not {self.holdout_fraction}")
+
 
 @dataclass
 class ValidationResult:
