@@ -1,10 +1,10 @@
 """The end-to-end demo (``d2a demo``, what ``make demo`` runs) on an embedded default.
 
 Meta-World Hammer: collect scripted-expert demonstrations, train the triplane world model,
-train the D2A policy on current + imagined clouds, evaluate it, print success and IoU, and
-write the imagination picture and the training curves. The default sizes fit a 2-core CPU
-in about 20 minutes: they give up resolution (32 x 32 x 8 voxels, 256 points into the
-encoder, narrow networks) and training length against the paper's GPU settings.
+train the D2A policy on current + imagined clouds, evaluate it, print success, the
+perception check and IoU, and write the imagination picture and the training curves. The
+default sizes fit a 2-core CPU: they give up resolution (32 x 32 x 8 voxels, 64 points per
+cloud, narrow networks) and training length against the paper's GPU settings.
 """
 
 from __future__ import annotations
