@@ -175,16 +175,16 @@ def frames_up_to_success(frames: TensorDict, keep_after: int) -> torch.Tensor:
     return keep
 
 
-def split_episodes(frames: TensorDict, tasks: list[str], holdout: int) -> tuple[list[int], list[int]]:
+def split_episodes(dataset: DemoDataset, holdout: int) -> tuple[list[int], list[int]]:
     """(training, held-out) episode ids: the last ``holdout`` episodes of each task are held out."""
-    ids = episode_bounds(frames)[0].tolist()
-    if holdout == 0:
-        return ids, []
-    per_task = len(ids) // len(tasks)
-    if holdout >= per_task:
-        raise ValueError(f"cannot hold out {holdout} of {per_task} episodes per task")
-    held = [i for k in range(len(tasks)) for i in ids[(k + 1) * per_task - holdout:(k + 1) * per_task]]
-    return [i for i in ids if i not in held], held
+    train, held = [], []
+    for task in sorted(dataset.metadata.tasks):
+        ids = [episode.index for episode in dataset.metadata.episodes if episode.task == task]
+        if holdout >= len(ids):
+            raise ValueError(f"cannot hold out {holdout} of {len(ids)} {task} episodes")
+        train += ids[: len(ids) - holdout]
+        held += ids[len(ids) - holdout :]
+    return train, held
 
 
 def fit_policy_normalizers(frames: TensorDict, config: PolicyConfig) -> dict[str, Normalizer]:
@@ -270,7 +270,7 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
     if config.trim_after_success >= 0:
         frames = frames[frames_up_to_success(frames, config.trim_after_success)]
     tasks = sorted(dataset.metadata.tasks)
-    train_ids, held_ids = split_episodes(frames, tasks, config.holdout_episodes)
+    train_ids, held_ids = split_episodes(dataset, config.holdout_episodes)
     normalizers = fit_policy_normalizers(frames[torch.isin(frames["episode"], torch.tensor(train_ids))], config.policy)
     obs_keys = config.policy.observation_keys
     window_config = WindowConfig(config.policy.horizon, config.policy.n_obs_steps, config.policy.n_action_steps,
