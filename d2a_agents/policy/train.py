@@ -316,10 +316,9 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
             "history": [dataclasses.asdict(point) for point in history], "metrics": metrics, "reliance": reliances,
         })
 
-    def check_perception(step: int) -> Reliance:
+    def check_perception(step: int) -> None:
         result = reliance(ema, {key: check_batch["obs", key] for key in obs_keys}, check_batch["action"])
         reliances.append({"step": step, "where": check_where, **dataclasses.asdict(result)})
-        return result
 
     evaluation_seconds = 0.0
 
