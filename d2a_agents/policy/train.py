@@ -67,9 +67,9 @@ class PolicyPreset:
 
 POLICY_PRESETS: dict[str, PolicyPreset] = {
     # A 2-core CPU: 64 points, the narrow preset networks, 4000 steps of batch 256 (1.0 M
-    # samples, about half of MP1's released budget) at 10x DP3's learning rate; about 6
-    # minutes on one thread for mp1 (d2a's second encoder adds about half). The ablations
-    # behind it are in docs/perception.md.
+    # samples, about half of MP1's released budget) at 10x DP3's learning rate: 7 minutes on
+    # one thread for mp1, 11 for d2a (its second cloud encoder; `d2a bench train`). The
+    # ablations behind it are in docs/perception.md.
     "cpu": PolicyPreset(CPU_POLICY_PRESET, steps=4000, batch_size=256, learning_rate=1e-3),
     # Section IV of the paper: 1024 points (Meta-World), batch 128, 3000 epochs of 2000
     # demonstration steps (~47k steps), DP3's learning rate.
