@@ -28,8 +28,11 @@ def _policy(**changes: object) -> Callable[[TrainPolicyConfig], TrainPolicyConfi
 
 
 def _encoder(**changes: object) -> Callable[[TrainPolicyConfig], TrainPolicyConfig]:
-    return lambda config: dataclasses.replace(
-        config, policy=dataclasses.replace(config.policy, encoder=dataclasses.replace(config.policy.encoder, **changes)))
+    def change(config: TrainPolicyConfig) -> TrainPolicyConfig:
+        encoder = dataclasses.replace(config.policy.encoder, **changes)
+        return dataclasses.replace(config, policy=dataclasses.replace(config.policy, encoder=encoder))
+
+    return change
 
 
 def _training(**changes: object) -> Callable[[TrainPolicyConfig], TrainPolicyConfig]:
@@ -124,6 +127,7 @@ def table(workdir: str) -> str:
                            for r in ratios)
         state = " / ".join(f"{r['state_shuffled'] / r['intact']:.1f}" for r in ratios)
         minutes = " / ".join(f"{g['train_seconds'] / 60:.1f}" for g in group)
-        lines.append(f"| {task} | {change} | {algo} | {len(group)} | {100 * rate:.0f} [{100 * low:.0f}-{100 * high:.0f}]"
-                     f" | {per_seed} | {cloud} | {state} | {minutes} |")
+        interval = f"{100 * rate:.0f} [{100 * low:.0f}-{100 * high:.0f}]"
+        lines.append(f"| {task} | {change} | {algo} | {len(group)} | {interval} | {per_seed} | {cloud} | {state} "
+                     f"| {minutes} |")
     return "\n".join(lines)

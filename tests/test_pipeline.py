@@ -161,6 +161,7 @@ def test_world_model_resume_refuses_other_training_settings(reach_data, world_mo
 
 
 def test_bad_world_model_settings_are_refused():
-    for field, value in (("steps", 0), ("batch_size", -1), ("queries", 0), ("validate_every", 0), ("learning_rate", 0.0)):
+    bad = (("steps", 0), ("batch_size", -1), ("queries", 0), ("validate_every", 0), ("learning_rate", 0.0))
+    for field, value in bad:
         with pytest.raises(ValueError, match=field):
             TrainWorldModelConfig(data="d", out="o.pt", **{field: value})

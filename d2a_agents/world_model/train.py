@@ -28,7 +28,6 @@ from d2a_agents.world_model.voxels import VoxelGrid
 from d2a_envs.sampling import CropBox
 from d2a_envs.tasks import get_task
 
-
 # TrainWorldModelConfig fields a resumed run may change; the others must match the checkpoint's.
 RESUMABLE_CHANGES = ("out", "model", "steps", "validate_every", "validation_stride", "checkpoint_every", "device",
                      "threads", "progress")
