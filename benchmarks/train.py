@@ -18,9 +18,9 @@ import torch
 from tensordict import TensorDict
 
 from collectors.dataset import DemoWindows, WindowConfig
-from d2a_agents.policy.agent import PolicyConfig
+from d2a_agents.policy.agent import Policy, PolicyConfig
 from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
-from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, fit_policy_normalizers
+from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, fit_policy_normalizers, training_step
 
 # The cpu preset before the perception work: 256 points, batch 32, MeanFlow's adaptive
 # weight p = 1 and no LayerNorm after the cloud projection (kept here as the reference row).
@@ -63,9 +63,7 @@ def synthetic_frames(num_points: int, episodes: int, length: int, seed: int = 0)
 
 
 def samples_per_second(preset: PolicyPreset, algo: str, config: TrainBenchConfig) -> float:
-    """Median samples/s over ``config.steps`` timed training steps."""
-    from d2a_agents.policy.agent import Policy
-
+    """Median samples/s over ``config.steps`` timed training steps (the trainer's own step)."""
     policy_config = dataclasses.replace(preset.policy, algo=algo)
     device = torch.device(config.device)
     frames = synthetic_frames(policy_config.num_points, config.episodes, config.episode_length)
@@ -79,11 +77,7 @@ def samples_per_second(preset: PolicyPreset, algo: str, config: TrainBenchConfig
     timings = []
     for step in range(3 + config.steps):
         started = time.perf_counter()
-        batch = windows.sample(preset.batch_size, generator)
-        loss, _ = policy.loss({key: batch["obs", key] for key in keys}, batch["action"], generator)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+        training_step(policy, optimizer, windows, preset.batch_size, generator)
         if device.type == "cuda":
             torch.cuda.synchronize()
         if step >= 3:

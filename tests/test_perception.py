@@ -11,7 +11,7 @@ from collectors.dataset import DemoWindows, WindowConfig
 from d2a_agents.policy.agent import Policy, PolicyConfig
 from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
 from d2a_agents.policy.perception import reliance
-from d2a_agents.policy.train import fit_policy_normalizers
+from d2a_agents.policy.train import fit_policy_normalizers, training_step
 
 EPISODES, STEPS, POINTS = 24, 6, 16
 
@@ -48,11 +48,7 @@ def test_shuffling_the_informative_input_raises_the_error(answer_in):
     optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
     generator = torch.Generator().manual_seed(0)
     for _ in range(300):
-        batch = windows.sample(64, generator)
-        loss, _ = policy.loss({key: batch["obs", key] for key in config.observation_keys}, batch["action"], generator)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+        training_step(policy, optimizer, windows, 64, generator)
 
     batch = windows.get(torch.arange(len(windows)))
     result = reliance(policy, {key: batch["obs", key] for key in config.observation_keys}, batch["action"])

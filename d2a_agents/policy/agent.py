@@ -34,6 +34,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from collectors.dataset import Normalizer
+from collectors.envs import STATE_KEY
 from d2a_agents.policy.networks import EncoderConfig, ObservationEncoder, VelocityNet, VelocityNetConfig
 from d2a_envs.sampling import farthest_point_indices
 
@@ -279,8 +280,8 @@ class PolicyRunner:
         return action
 
 
-# TorchRL's GymWrapper names the env's ``state`` observation ``observation``; the others keep their names.
-TORCHRL_KEYS = {"state": "observation"}
+# TorchRL's GymWrapper renames the env's ``state`` observation; the others keep their names.
+TORCHRL_KEYS = {"state": STATE_KEY}
 
 
 class TorchRLPolicy(TensorDictModuleBase):

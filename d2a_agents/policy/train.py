@@ -248,6 +248,20 @@ def evaluate_checkpoint(
                     end_on_success=end_on_success)
 
 
+def training_step(
+    policy: Policy, optimizer: torch.optim.Optimizer, windows: DemoWindows, batch_size: int,
+    generator: torch.Generator,
+) -> dict[str, float]:
+    """One optimizer step on ``batch_size`` windows drawn from ``windows``; returns the loss figures."""
+    batch = windows.sample(batch_size, generator)
+    keys = policy.config.observation_keys
+    loss, info = policy.loss({key: batch["obs", key] for key in keys}, batch["action"], generator)
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    return info
+
+
 def _reliance_batch(windows: DemoWindows, config: TrainPolicyConfig) -> TensorDict:
     """The fixed windows of the perception check (a seeded draw without replacement)."""
     generator = torch.Generator().manual_seed(1234)
@@ -336,15 +350,10 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
                disable=not config.progress)
     started = time.perf_counter()
     for step in bar:
-        batch = windows.sample(config.batch_size, generator)
-        observation = {key: batch["obs", key] for key in obs_keys}
-        loss, info = policy.loss(observation, batch["action"], generator)
+        info = training_step(policy, optimizer, windows, config.batch_size, generator)
         if not math.isfinite(info["mse"]):
             raise FloatingPointError(f"the training loss became {info['mse']} at step {step + 1}; "
                                      f"{path} keeps the last finite checkpoint")
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
         scheduler.step()
         with torch.no_grad():
             for average, current in zip(ema.parameters(), policy.parameters(), strict=True):
