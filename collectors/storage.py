@@ -30,7 +30,8 @@ from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 from d2a.atomic import atomic_write_text
 
 FORMAT = "d2a-demonstrations"
-FORMAT_VERSION = 1
+# v2: clouds show the scene's visible sites (goal markers); v1 clouds did not.
+FORMAT_VERSION = 2
 METADATA_FILE = "d2a_dataset.json"
 BUFFER_DIR = "buffer"
 FRAME_KEYS = ("point_cloud", "agent_pos", "state", "action", "reward", "success", "episode", "step")
@@ -164,7 +165,7 @@ class DemoDataset:
         if metadata.format != FORMAT or metadata.format_version != FORMAT_VERSION:
             raise DatasetError(
                 f"{directory} has format {metadata.format!r} v{metadata.format_version}; "
-                f"this version of D2A reads {FORMAT!r} v{FORMAT_VERSION}"
+                f"this version of D2A reads {FORMAT!r} v{FORMAT_VERSION}: collect it again"
             )
         buffer = _new_buffer(directory, metadata.capacity)
         if metadata.episodes:

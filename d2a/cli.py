@@ -32,6 +32,7 @@ def _add_env_options(parser: argparse.ArgumentParser, several_tasks: bool = Fals
     parser.add_argument("--image-size", type=int, default=None)
     parser.add_argument("--num-points", type=int, default=None)
     parser.add_argument("--crop-box", type=_parse_box, default=None, help="x0,y0,z0,x1,y1,z1 in metres")
+    parser.add_argument("--hide-sites", action="store_true", help="leave MuJoCo sites (goal markers) out")
 
 
 def _replace_given(instance: Any, **changes: object) -> Any:
@@ -43,6 +44,8 @@ def _env_kwargs(args: argparse.Namespace) -> dict[str, object]:
     kwargs = dict(backend=args.backend, image_size=args.image_size, num_points=args.num_points, crop_box=args.crop_box)
     if args.cameras:
         kwargs["cameras"] = tuple(args.cameras.split(","))
+    if args.hide_sites:
+        kwargs["show_sites"] = False
     return {k: v for k, v in kwargs.items() if v is not None}
 
 

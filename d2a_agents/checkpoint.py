@@ -10,7 +10,8 @@ import torch
 from d2a.atomic import atomic_torch_save
 
 FORMAT = "d2a-checkpoint"
-FORMAT_VERSION = 1
+# v2: trained on clouds that show the goal markers (data-set format v2).
+FORMAT_VERSION = 2
 
 
 class CheckpointError(ValueError):
@@ -37,7 +38,7 @@ def load_checkpoint(path: str | Path, kind: str) -> dict[str, Any]:
         raise CheckpointError(f"{path} is not a D2A checkpoint")
     if payload.get("format_version") != FORMAT_VERSION:
         version = payload.get("format_version")
-        raise CheckpointError(f"{path} has checkpoint format v{version}, expected v{FORMAT_VERSION}")
+        raise CheckpointError(f"{path} has checkpoint format v{version}, expected v{FORMAT_VERSION}: train it again")
     if payload.get("kind") != kind:
         raise CheckpointError(f"{path} is a {payload.get('kind')} checkpoint, not a {kind}")
     return payload

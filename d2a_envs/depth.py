@@ -1,10 +1,11 @@
 """Depth (and colour) images of MuJoCo cameras from two interchangeable backends.
 
 ``raycast`` casts one ray per pixel centre with ``mujoco.mj_multiRay``: no OpenGL, cheap on
-a CPU. ``render`` rasterises with MuJoCo's OpenGL renderer (EGL or OSMesa). Both see the
-same geoms (MuJoCo's default visible geom groups; sites are hidden in ``render`` because
-rays cannot hit them) and return the depth along the optical axis in metres, ``inf`` where
-the pixel sees nothing.
+a CPU. ``render`` rasterises with MuJoCo's OpenGL renderer (EGL or OSMesa). Both see what
+MuJoCo's renderer draws by default (geom and site groups 0-2): the sites include the goal
+markers of Meta-World, which DP3 and MP1 clouds show too (without them Push's goal is
+invisible). Both return the depth along the optical axis in metres, ``inf`` where the pixel
+sees nothing.
 """
 
 from __future__ import annotations
@@ -59,6 +60,39 @@ def visible_geom_groups() -> np.ndarray:
     return np.asarray(mujoco.MjvOption().geomgroup, dtype=np.uint8)
 
 
+def visible_sites(model: mujoco.MjModel) -> np.ndarray:
+    """Ids of the sites MuJoCo draws by default: groups 0-2, not fully transparent."""
+    groups = np.asarray(mujoco.MjvOption().sitegroup, dtype=bool)
+    in_group = groups[np.clip(model.site_group, 0, len(groups) - 1)]
+    return np.flatnonzero(in_group & (model.site_rgba[:, 3] > 0))
+
+
+def cast_sites(
+    model: mujoco.MjModel, data: mujoco.MjData, origin: np.ndarray, directions: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(site id, ray parameter) of the nearest visible site on each ray; -1 / ``inf`` where none.
+
+    ``mj_ray`` ignores sites, so each site is intersected on its own with ``mju_rayGeom``,
+    only for the rays that pass within its bounding sphere (a goal marker covers a few pixels).
+    """
+    site_ids = np.full(len(directions), -1, dtype=np.int32)
+    dist = np.full(len(directions), np.inf)
+    norm2 = np.einsum("ij,ij->i", directions, directions)
+    for site in visible_sites(model):
+        centre = data.site_xpos[site] - origin
+        along = directions @ centre
+        miss2 = centre @ centre - along**2 / norm2
+        bound = float(np.linalg.norm(model.site_size[site]))
+        for ray in np.flatnonzero((miss2 <= bound**2) & (along > 0)):
+            x = mujoco.mju_rayGeom(
+                data.site_xpos[site], data.site_xmat[site], model.site_size[site], origin, directions[ray],
+                int(model.site_type[site]),
+            )
+            if 0 <= x < dist[ray]:
+                dist[ray], site_ids[ray] = x, site
+    return site_ids, dist
+
+
 def far_clip(model: mujoco.MjModel) -> float:
     """Far clipping distance of the model's renderer in metres."""
     return float(model.vis.map.zfar * model.stat.extent)
@@ -86,9 +120,10 @@ class RaycastDepth:
 
     name = "raycast"
 
-    def __init__(self, width: int, height: int, threads: int | None = None) -> None:
+    def __init__(self, width: int, height: int, threads: int | None = None, show_sites: bool = True) -> None:
         self.width, self.height = width, height
         self.threads = threads or default_ray_threads()
+        self.show_sites = show_sites
         self._geom_groups = visible_geom_groups()
         self._pool: ThreadPoolExecutor | None = None
         self._pool_pid: int | None = None
@@ -137,14 +172,23 @@ class RaycastDepth:
         # Directions keep z = -1 in the camera frame, so the ray parameter is the depth.
         all_vec = camera_intrinsics(model, cam_id, self.width, self.height).ray_directions() @ pose.rotation.T
         cast = np.ones(len(all_vec), dtype=bool) if region is None else rays_meet_box(pose.position, all_vec, region)
-        geom_ids, dist = self._cast(model, data, pose.position, all_vec[cast])
-        hit = geom_ids >= 0
+        vec = all_vec[cast]
+        geom_ids, dist = self._cast(model, data, pose.position, vec)
+        dist[geom_ids < 0] = np.inf
+        colours = np.zeros((len(vec), 3))
+        if with_rgb:
+            colours[geom_ids >= 0] = geom_colours(model)[geom_ids[geom_ids >= 0]]
+        if self.show_sites:
+            site_ids, site_dist = cast_sites(model, data, pose.position, vec)
+            nearer = site_dist < dist
+            dist[nearer] = site_dist[nearer]
+            colours[nearer] = model.site_rgba[site_ids[nearer], :3]
         depth = np.full(len(all_vec), np.inf)
-        depth[np.flatnonzero(cast)[hit]] = dist[hit]
+        depth[cast] = dist
         rgb = None
         if with_rgb:
             rgb = np.zeros((len(all_vec), 3))
-            rgb[np.flatnonzero(cast)[hit]] = geom_colours(model)[geom_ids[hit]]
+            rgb[cast] = colours
             rgb = rgb.reshape(self.height, self.width, 3)
         return CameraImage(depth=depth.reshape(self.height, self.width), rgb=rgb)
 
@@ -204,7 +248,7 @@ class RenderDepth:
 
     name = "render"
 
-    def __init__(self, width: int, height: int) -> None:
+    def __init__(self, width: int, height: int, show_sites: bool = True) -> None:
         platform = bound_gl_platform()
         if platform is None or (platform in ("glfw", "glx") and not os.environ.get("DISPLAY")):
             raise RuntimeError(missing_gl_message(platform))
@@ -212,7 +256,8 @@ class RenderDepth:
         self._renderer: mujoco.Renderer | None = None
         self._model: mujoco.MjModel | None = None
         self._option = mujoco.MjvOption()
-        self._option.sitegroup[:] = 0  # rays cannot hit sites; keep both backends alike
+        if not show_sites:
+            self._option.sitegroup[:] = 0
 
     def _get_renderer(self, model: mujoco.MjModel) -> mujoco.Renderer:
         if self._renderer is None or self._model is not model:
@@ -255,10 +300,10 @@ class RenderDepth:
         return state
 
 
-def make_depth_backend(name: str, width: int, height: int) -> DepthBackend:
+def make_depth_backend(name: str, width: int, height: int, show_sites: bool = True) -> DepthBackend:
     """Backend by name: ``raycast`` or ``render``."""
     if name == "raycast":
-        return RaycastDepth(width, height)
+        return RaycastDepth(width, height, show_sites=show_sites)
     if name == "render":
-        return RenderDepth(width, height)
+        return RenderDepth(width, height, show_sites=show_sites)
     raise ValueError(f"unknown depth backend {name!r}; choose one of {DEPTH_BACKENDS}")

@@ -26,6 +26,7 @@ def make_env(
     crop_box: CropBox | Sequence[Sequence[float]] | None = None,
     backend: str | None = None,
     with_rgb: bool | None = None,
+    show_sites: bool | None = None,
     state_obs: bool = True,
     world_model: str | None = None,
 ) -> gym.Env:
@@ -39,7 +40,7 @@ def make_env(
         raise ValueError(f"unknown suite {suite!r}; choose one of {sorted(_SUITE_ENVS)}")
     config = SUITE_DEFAULTS[suite].updated(
         cameras=cameras, image_size=image_size, num_points=num_points,
-        crop_box=crop_box, backend=backend, with_rgb=with_rgb,
+        crop_box=crop_box, backend=backend, with_rgb=with_rgb, show_sites=show_sites,
     )
     env = PointCloudObservation(_SUITE_ENVS[suite](task, state_obs=state_obs), config)
     if world_model is not None:

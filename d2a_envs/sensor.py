@@ -27,6 +27,8 @@ class PointCloudConfig:
         crop_box: workspace box; points outside are dropped before sampling.
         backend: ``raycast`` (no GL, fast on CPU) or ``render`` (OpenGL rasteriser).
         with_rgb: return (N, 6) points with RGB in [0, 1] instead of (N, 3).
+        show_sites: draw the scene's visible sites (Meta-World's goal markers) as MuJoCo's
+            renderer does by default; ``False`` keeps only physical geoms.
     """
 
     cameras: tuple[str, ...]
@@ -35,6 +37,7 @@ class PointCloudConfig:
     num_points: int = 1024
     backend: str = "raycast"
     with_rgb: bool = False
+    show_sites: bool = True
 
     def __post_init__(self) -> None:
         cameras = (self.cameras,) if isinstance(self.cameras, str) else tuple(self.cameras)
@@ -83,7 +86,7 @@ class PointCloudSensor:
     def __init__(self, config: PointCloudConfig) -> None:
         self.config = config
         height, width = config.image_size
-        self._backend: DepthBackend = make_depth_backend(config.backend, width, height)
+        self._backend: DepthBackend = make_depth_backend(config.backend, width, height, config.show_sites)
         self._camera_ids: dict[int, list[int]] = {}
 
     def validate(self, model: mujoco.MjModel) -> None:

@@ -11,9 +11,11 @@ import pytest
 
 from d2a_envs.depth import RenderDepth
 
-# A scene with known geometry: a sphere and a box, seen by one camera, nothing else.
+# A scene with known geometry: a sphere and a box, a spherical site (a marker, as Meta-World's
+# goals are), seen by one camera, nothing else.
 SPHERE_CENTRE, SPHERE_RADIUS = (0.0, 0.0, 0.5), 0.1
 BOX_CENTRE, BOX_HALF = (0.35, 0.1, 0.35), 0.1
+MARKER_CENTRE, MARKER_RADIUS = (-0.3, 0.0, 0.4), 0.05
 KNOWN_SCENE_XML = f"""
 <mujoco>
   <visual><global offwidth="256" offheight="256"/></visual>
@@ -22,6 +24,8 @@ KNOWN_SCENE_XML = f"""
     <geom name="ball" type="sphere" size="{SPHERE_RADIUS}" pos="{' '.join(map(str, SPHERE_CENTRE))}" rgba="1 0 0 1"/>
     <geom name="block" type="box" size="{BOX_HALF} {BOX_HALF} {BOX_HALF}" pos="{' '.join(map(str, BOX_CENTRE))}"
           rgba="0 1 0 1"/>
+    <site name="marker" type="sphere" size="{MARKER_RADIUS}" pos="{' '.join(map(str, MARKER_CENTRE))}"
+          rgba="0 0 1 1"/>
     <camera name="front" pos="0.1 -1.2 0.8" xyaxes="1 0 0 0 0.3 1" fovy="50"/>
   </worldbody>
 </mujoco>

@@ -10,7 +10,15 @@ import pytest
 from d2a_envs.camera import CameraPose, PinholeIntrinsics, backproject, camera_id, camera_intrinsics, camera_pose
 from d2a_envs.depth import RaycastDepth, RenderDepth, rays_meet_box
 from d2a_envs.sampling import CropBox
-from tests.conftest import BOX_CENTRE, BOX_HALF, SPHERE_CENTRE, SPHERE_RADIUS, requires_render
+from tests.conftest import (
+    BOX_CENTRE,
+    BOX_HALF,
+    MARKER_CENTRE,
+    MARKER_RADIUS,
+    SPHERE_CENTRE,
+    SPHERE_RADIUS,
+    requires_render,
+)
 
 
 def test_intrinsics_by_hand():
@@ -35,13 +43,17 @@ def test_backproject_by_hand():
     np.testing.assert_allclose(points, [[1.0 - 1.0, 2.0 + 2.0, 3.0 + 1.0]], atol=1e-12)
 
 
+def _to_marker(points: np.ndarray) -> np.ndarray:
+    return np.abs(np.linalg.norm(points - MARKER_CENTRE, axis=1) - MARKER_RADIUS)
+
+
 def _surface_error(points: np.ndarray) -> np.ndarray:
-    """Distance of each point to the nearer of the two known surfaces."""
+    """Distance of each point to the nearest of the three known surfaces."""
     to_sphere = np.abs(np.linalg.norm(points - SPHERE_CENTRE, axis=1) - SPHERE_RADIUS)
     offset = np.abs(points - BOX_CENTRE) - BOX_HALF
     outside = np.linalg.norm(np.maximum(offset, 0.0), axis=1)
     to_box = np.where(outside > 0, outside, np.abs(offset.max(axis=1)))
-    return np.minimum(to_sphere, to_box)
+    return np.minimum(np.minimum(to_sphere, to_box), _to_marker(points))
 
 
 def _scene_points(backend, model, data) -> np.ndarray:
@@ -58,6 +70,17 @@ def test_raycast_points_lie_on_known_surfaces(known_scene):
     assert _surface_error(points).max() < 1e-6
     on_sphere = np.abs(np.linalg.norm(points - SPHERE_CENTRE, axis=1) - SPHERE_RADIUS) < 1e-6
     assert 50 < on_sphere.sum() < len(points)  # both objects are seen
+    assert (_to_marker(points) < 1e-6).sum() > 20  # and the site, which mj_ray alone cannot hit
+
+
+@pytest.mark.parametrize("backend", ["raycast", pytest.param("render", marks=requires_render)])
+def test_hidden_sites_leave_the_marker_out(known_scene, backend):
+    model, data = known_scene
+    make = RaycastDepth if backend == "raycast" else RenderDepth
+    shown = _scene_points(make(96, 64), model, data)
+    hidden = _scene_points(make(96, 64, show_sites=False), model, data)
+    assert (_to_marker(shown) < 0.002).sum() > 20
+    assert (_to_marker(hidden) < 0.002).sum() == 0
 
 
 @requires_render
@@ -74,7 +97,7 @@ def test_raycast_colours_come_from_the_hit_geom(known_scene):
     image = RaycastDepth(48, 32).capture(model, data, camera_id(model, "front"), with_rgb=True)
     seen = np.isfinite(image.depth)
     colours = {tuple(c) for c in image.rgb[seen].round(3)}
-    assert colours == {(1.0, 0.0, 0.0), (0.0, 1.0, 0.0)}
+    assert colours == {(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)}
     assert np.all(image.rgb[~seen] == 0.0)
 
 

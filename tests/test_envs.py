@@ -38,6 +38,20 @@ def test_cloud_has_points_on_the_object_and_the_fingers(task):
     env.close()
 
 
+@pytest.mark.parametrize("task", ["push", "stick-pull", "lever-pull"])
+def test_goal_marker_is_in_the_cloud_from_the_first_frame(task):
+    """The goal comes from the task's own target (simulator truth), not from the camera code;
+    the first frame already shows the marker there, and ``show_sites=False`` removes it."""
+    for show_sites, expected in ((True, True), (False, False)):
+        env = make(task, show_sites=show_sites)
+        for seed in (0, 1):
+            observation, _ = env.reset(seed=seed)
+            goal = env.unwrapped._sim._target_pos
+            near_goal = np.linalg.norm(observation["point_cloud"] - goal, axis=1) < 0.025
+            assert near_goal.any() == expected, f"{task} seed {seed} show_sites={show_sites}"
+        env.close()
+
+
 def test_cloud_follows_the_moving_gripper():
     env = make("reach")
     observation, _ = env.reset(seed=0)

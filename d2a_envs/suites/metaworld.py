@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import mujoco
 import numpy as np
 from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
@@ -51,4 +52,7 @@ class MetaWorldEnv(SuiteEnv):
         if seed is not None:
             self._sim.seed(seed)
         state, info = self._sim.reset()
+        # Meta-World moves the goal site after its last forward pass: recompute the derived
+        # positions so the first frame draws the marker where the goal is.
+        mujoco.mj_kinematics(self._sim.model, self._sim.data)
         return state, dict(info)
