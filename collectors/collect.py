@@ -20,7 +20,15 @@ from tqdm import tqdm
 import d2a_envs
 from collectors.envs import make_torchrl_env
 from collectors.experts import ScriptedExpert
-from collectors.storage import CollectionRecord, DatasetError, DemoDataset, EpisodeRecord, episode_frames
+from collectors.storage import (
+    CollectionRecord,
+    DatasetError,
+    DemoDataset,
+    EpisodeRecord,
+    episode_frames,
+    refuse_foreign,
+)
+from d2a.atomic import exclusive_writer, holds_only_lock
 
 
 @dataclass(frozen=True)
@@ -58,7 +66,7 @@ def _open_output(config: CollectConfig) -> DemoDataset:
         raise ValueError("choose one of --append and --overwrite")
     capacity = len(config.tasks) * config.episodes * config.max_episode_steps
     if config.append:
-        if not out.exists() or not any(out.iterdir()):
+        if not out.exists() or holds_only_lock(out):
             return DemoDataset.create(out, capacity)
         return DemoDataset.open(out)
     return DemoDataset.create(out, capacity, overwrite=config.overwrite)
@@ -151,8 +159,11 @@ def collect(config: CollectConfig) -> DemoDataset:
     # Bad env settings (num_points 0, an unknown camera...) fail here, before the output
     # directory is touched: --overwrite must not wipe a data set for a run that cannot start.
     gym.make(specs[0].env_id, **_env_kwargs(config)).close()
-    dataset = _open_output(config)
-    for spec in specs:
-        record = collect_task(dataset, spec.name, config)
-        print(f"{spec.name}: kept {record.kept} successful episodes of {record.attempts} tried (seed {record.seed})")
+    refuse_foreign(Path(config.out))  # before the lock file is created in it
+    with exclusive_writer(config.out):
+        dataset = _open_output(config)
+        for spec in specs:
+            record = collect_task(dataset, spec.name, config)
+            print(f"{spec.name}: kept {record.kept} successful episodes of {record.attempts} tried "
+                  f"(seed {record.seed})")
     return dataset

@@ -16,6 +16,7 @@ written after the last metadata update are ignored (and overwritten by ``--appen
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 from dataclasses import asdict, dataclass, field
@@ -27,7 +28,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 
-from d2a.atomic import atomic_write_text
+from d2a.atomic import LOCK_NAME, atomic_write_text, holds_only_lock
 
 FORMAT = "d2a-demonstrations"
 # v2: clouds show the scene's visible sites (goal markers); v1 clouds did not.
@@ -105,9 +106,41 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
+def _check_buffer_files(storage: Path, capacity: int) -> None:
+    """Refuse memory-mapped files that do not match their recorded layout, before anything maps them.
+
+    Mapping a truncated file would silently re-grow it with zeros (and train on zero clouds).
+    """
+    layout_path = storage / "meta.json"
+    try:
+        layout = json.loads(layout_path.read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise DatasetError(f"{layout_path} is unreadable ({error}): the data set is damaged") from error
+    for key in FRAME_KEYS:
+        entry = layout.get(key)
+        path = storage / f"{key}.memmap"
+        if not isinstance(entry, dict) or not path.is_file():
+            raise DatasetError(f"{path} is missing: the data set is damaged")
+        dtype = getattr(torch, str(entry.get("dtype", "")).removeprefix("torch."), None)
+        shape = entry.get("shape") or [0]
+        if not isinstance(dtype, torch.dtype) or shape[0] != capacity:
+            raise DatasetError(f"{layout_path} records {key} as {shape} {dtype}, not {capacity} rows: damaged")
+        expected, size = math.prod(shape) * dtype.itemsize, path.stat().st_size
+        if size != expected:
+            raise DatasetError(f"{path} holds {size} bytes where {shape} of {dtype} need {expected}: the data set "
+                               f"is damaged (truncated or overwritten)")
+
+
 def _new_buffer(directory: Path, capacity: int) -> TensorDictReplayBuffer:
     storage = LazyMemmapStorage(capacity, scratch_dir=directory / BUFFER_DIR / "storage", existsok=True)
     return TensorDictReplayBuffer(storage=storage, batch_size=1)
+
+
+def refuse_foreign(directory: Path) -> None:
+    """Refuse to write into a directory that holds files but is not a D2A data set."""
+    if directory.exists() and not holds_only_lock(directory):
+        if not DemoDataset.is_dataset(directory) and not (directory / BUFFER_DIR).exists():
+            raise DatasetError(f"refusing to write into {directory}: it holds files but is not a D2A data set")
 
 
 class DemoDataset:
@@ -135,15 +168,17 @@ class DemoDataset:
     def create(cls, directory: str | Path, capacity: int, overwrite: bool = False) -> DemoDataset:
         """A new, empty data set with room for ``capacity`` steps.
 
-        An existing non-empty directory is refused unless ``overwrite``.
+        An existing non-empty directory is refused unless ``overwrite``; a writer lock held on
+        it (:func:`d2a.atomic.exclusive_writer`) survives the overwrite.
         """
         directory = Path(directory)
-        if directory.exists() and any(directory.iterdir()):
+        if directory.exists() and not holds_only_lock(directory):
             if not overwrite:
                 raise DatasetError(f"{directory} already holds files; pass --append to add to it or --overwrite")
-            if not cls.is_dataset(directory) and not (directory / BUFFER_DIR).exists():
-                raise DatasetError(f"refusing to overwrite {directory}: it is not a D2A data set")
-            shutil.rmtree(directory)
+            refuse_foreign(directory)
+            for entry in directory.iterdir():
+                if entry.name != LOCK_NAME:
+                    shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
         directory.mkdir(parents=True, exist_ok=True)
         dataset = cls(directory, DatasetMetadata(capacity=capacity, versions=package_versions()),
                       _new_buffer(directory, capacity))
@@ -171,6 +206,7 @@ class DemoDataset:
         if metadata.episodes:
             if not (directory / BUFFER_DIR / "storage" / "storage_metadata.json").is_file():
                 raise DatasetError(f"{directory} is truncated: its metadata lists episodes but {BUFFER_DIR}/ is empty")
+            _check_buffer_files(directory / BUFFER_DIR / "storage", metadata.capacity)
             buffer.loads(directory / BUFFER_DIR)
             if len(buffer) < metadata.num_frames:
                 raise DatasetError(
@@ -179,6 +215,15 @@ class DemoDataset:
                 )
         dataset = cls(directory, metadata, buffer)
         dataset._rewind_to_metadata()
+        return dataset
+
+    @classmethod
+    def open_for_training(cls, directory: str | Path) -> DemoDataset:
+        """Open a data set a trainer can use: at least one episode, every value finite."""
+        dataset = cls.open(directory)
+        if not dataset.metadata.episodes:
+            raise DatasetError(f"{directory} holds no episodes (did every collection attempt fail?)")
+        dataset.check_finite()
         return dataset
 
     # --- writing --------------------------------------------------------------------------
@@ -232,6 +277,20 @@ class DemoDataset:
     def frames(self) -> TensorDict:
         """Every stored step in order, as a memory-mapped TensorDict (no copy)."""
         return self.buffer.storage._storage[: self.num_frames]
+
+    def check_finite(self) -> None:
+        """Refuse non-finite values in any float field (a NaN cloud would train into NaN weights)."""
+        frames = self.frames()
+        for key in FRAME_KEYS:
+            values = frames[key]
+            if not values.is_floating_point():
+                continue
+            bad = ~torch.isfinite(values.reshape(len(values), -1)).all(dim=1)
+            if bad.any():
+                first = int(bad.nonzero()[0])
+                episode = int(frames["episode"][first])
+                raise DatasetError(f"{self.directory}: {key} holds non-finite values in {int(bad.sum())} steps "
+                                   f"(first: episode {episode}, step {int(frames['step'][first])}); collect it again")
 
     def episode(self, index: int) -> TensorDict:
         """The steps of stored episode ``index``."""

@@ -40,6 +40,22 @@ def known_scene() -> tuple[mujoco.MjModel, mujoco.MjData]:
     return model, data
 
 
+SMALL_ENV_KWARGS = {"image_size": 48, "num_points": 128}
+
+
+@pytest.fixture(scope="session")
+def reach_data(tmp_path_factory) -> str:
+    """Two scripted Reach demonstrations at small settings, collected once per session.
+
+    Shared and read-only: a test that changes a data set copies it first.
+    """
+    from collectors.collect import CollectConfig, collect
+
+    out = tmp_path_factory.mktemp("data") / "reach"
+    collect(CollectConfig(tasks=("reach",), out=str(out), episodes=2, env_kwargs=SMALL_ENV_KWARGS, progress=False))
+    return str(out)
+
+
 def _render_available() -> bool:
     try:
         model = mujoco.MjModel.from_xml_string(KNOWN_SCENE_XML)

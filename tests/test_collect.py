@@ -17,8 +17,7 @@ import torch
 from collectors.collect import CollectConfig, collect
 from collectors.storage import METADATA_FILE, DatasetError, DemoDataset
 from d2a_envs.wrappers import SeedEachReset
-
-ENV_KWARGS = {"image_size": 48, "num_points": 128}
+from tests.conftest import SMALL_ENV_KWARGS as ENV_KWARGS
 
 
 def config(out: Path, **changes) -> CollectConfig:
@@ -26,9 +25,9 @@ def config(out: Path, **changes) -> CollectConfig:
                             "progress": False, **changes})
 
 
-@pytest.fixture(scope="module")
-def reach_dataset(tmp_path_factory) -> DemoDataset:
-    return collect(config(tmp_path_factory.mktemp("data") / "reach"))
+@pytest.fixture
+def reach_dataset(reach_data) -> DemoDataset:
+    return DemoDataset.open(reach_data)
 
 
 def test_collected_episodes_read_back(reach_dataset):
@@ -74,6 +73,7 @@ def test_existing_output_is_refused_without_append_or_overwrite(reach_dataset, t
     with pytest.raises(DatasetError, match="not a D2A data set"):
         collect(config(foreign, append=True))
     assert (foreign / "notes.txt").read_text() == "mine"
+    assert [p.name for p in foreign.iterdir()] == ["notes.txt"]  # not even a lock file was left
 
 
 def test_tasks_without_an_expert_are_refused_before_any_file_is_written(tmp_path):

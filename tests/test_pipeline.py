@@ -7,7 +7,6 @@ import dataclasses
 import pytest
 import torch
 
-from collectors.collect import CollectConfig, collect
 from collectors.evaluation import evaluate
 from d2a_agents.checkpoint import CheckpointError, load_checkpoint
 from d2a_agents.policy.agent import PolicyConfig
@@ -24,15 +23,7 @@ from d2a_agents.policy.train import (
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
 from d2a_agents.world_model.triplane import WorldModelConfig
 
-ENV_KWARGS = {"image_size": 48, "num_points": 128}
 TINY = dict(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)), network=VelocityNetConfig(hidden=32, layers=2))
-
-
-@pytest.fixture(scope="module")
-def reach_data(tmp_path_factory) -> str:
-    out = tmp_path_factory.mktemp("pipeline") / "reach"
-    collect(CollectConfig(tasks=("reach",), out=str(out), episodes=2, env_kwargs=ENV_KWARGS, progress=False))
-    return str(out)
 
 
 @pytest.fixture(scope="module")

@@ -274,7 +274,7 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
     if config.threads:
         torch.set_num_threads(config.threads)
     device = torch.device(config.device)
-    dataset = DemoDataset.open(config.data)
+    dataset = DemoDataset.open_for_training(config.data)
     if uses_imagination(config.policy.algo) and config.world_model is None:
         raise ValueError(f"algo {config.policy.algo!r} imagines the future: pass --world-model")
     imaginer = Imaginer.from_checkpoint(config.world_model) if uses_imagination(config.policy.algo) else None

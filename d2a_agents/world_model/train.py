@@ -163,7 +163,7 @@ def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel
     if config.threads:
         torch.set_num_threads(config.threads)
     device = torch.device(config.device)
-    dataset = DemoDataset.open(config.data)
+    dataset = DemoDataset.open_for_training(config.data)
     box = CropBox.from_any(config.crop_box) if config.crop_box is not None else dataset_crop_box(dataset)
     grid = VoxelGrid(box, config.model.resolution)
     action_dim = int(dataset.frames()["action"].shape[-1])

@@ -1,0 +1,117 @@
+"""Fault injection: damaged data sets, concurrent writers and bad input get a clear one-line
+error, a non-zero exit and leave every file as it was.
+
+Each case runs the real command line (``d2a.cli.main``) where the guarantee is the CLI's, and
+compares the data set's bytes before and after.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from collectors.storage import BUFFER_DIR, METADATA_FILE, DatasetError, DemoDataset
+from d2a.atomic import LOCK_NAME, DirectoryBusyError, exclusive_writer
+from d2a.cli import main
+from tests.conftest import SMALL_ENV_KWARGS
+
+STORAGE = Path(BUFFER_DIR) / "storage"
+
+
+def fingerprint(directory: Path) -> dict[str, str]:
+    """Hash of every file but the writer lock: equal fingerprints, unaltered data set."""
+    return {
+        str(path.relative_to(directory)): hashlib.sha256(path.read_bytes()).hexdigest()
+        for path in sorted(directory.rglob("*")) if path.is_file() and path.name != LOCK_NAME
+    }
+
+
+def fails_with(argv: list[str], capsys, *fragments: str) -> str:
+    """Run the CLI, expect a non-zero exit whose one-line message holds every fragment."""
+    with pytest.raises(SystemExit) as stopped:
+        main(argv)
+    message = str(stopped.value.code)
+    assert stopped.value.code not in (0, None), "the command should have failed"
+    assert message.startswith("d2a: error: ") and "\n" not in message, message
+    for fragment in fragments:
+        assert fragment in message, message
+    return message
+
+
+@pytest.fixture
+def damaged(reach_data, tmp_path) -> Path:
+    """A private copy of the shared data set, free to damage."""
+    copy = tmp_path / "reach"
+    shutil.copytree(reach_data, copy)
+    return copy
+
+
+def test_truncated_memmap_is_refused_by_a_read_only_command_without_writing(damaged, capsys):
+    cloud = damaged / STORAGE / "point_cloud.memmap"
+    with open(cloud, "r+b") as handle:
+        handle.truncate(cloud.stat().st_size // 2)
+    before = fingerprint(damaged)
+    fails_with(["data", "info", str(damaged)], capsys, "point_cloud.memmap", "damaged")
+    assert fingerprint(damaged) == before  # data info did not re-grow the file
+
+
+@pytest.mark.parametrize("victim", ["action.memmap", "meta.json"])
+def test_missing_buffer_file_is_named(damaged, capsys, victim):
+    (damaged / STORAGE / victim).unlink()
+    fails_with(["data", "info", str(damaged)], capsys, victim)
+
+
+def test_missing_metadata_is_a_clear_error(damaged, capsys):
+    (damaged / METADATA_FILE).unlink()
+    fails_with(["data", "info", str(damaged)], capsys, METADATA_FILE, "missing")
+
+
+def test_non_finite_clouds_are_refused_before_training(damaged, capsys, tmp_path):
+    dataset = DemoDataset.open(damaged)
+    dataset.frames()["point_cloud"][250, 3, 1] = float("nan")  # episode 1, step 50 (a memory map: on disk)
+    before = fingerprint(damaged)
+    for command in (["train-policy", "--algo", "mp1"], ["train-wm"]):
+        fails_with([*command, "--data", str(damaged), "--out", str(tmp_path / command[0] / "run")], capsys,
+                   "point_cloud", "non-finite", "episode 1, step 50")
+        assert not (tmp_path / command[0]).exists()  # nothing was trained or written
+    assert fingerprint(damaged) == before
+
+
+def test_a_data_set_without_episodes_is_refused_for_training(tmp_path):
+    empty = DemoDataset.create(tmp_path / "empty", capacity=10)
+    with pytest.raises(DatasetError, match="no episodes"):
+        DemoDataset.open_for_training(empty.directory)
+
+
+def test_a_second_writer_is_refused_and_the_first_keeps_its_data(damaged, capsys):
+    before = fingerprint(damaged)
+    argv = ["collect", "--task", "reach", "--episodes", "3", "--append", "--out", str(damaged),
+            "--image-size", str(SMALL_ENV_KWARGS["image_size"]), "--num-points", str(SMALL_ENV_KWARGS["num_points"])]
+    with exclusive_writer(damaged):  # another collection is writing
+        fails_with(argv, capsys, "another process is writing to", str(damaged))
+        with pytest.raises(DirectoryBusyError):
+            with exclusive_writer(damaged):
+                pass
+    assert fingerprint(damaged) == before
+
+
+def test_overwrite_keeps_the_lock_and_an_interrupted_output_can_be_reused(tmp_path):
+    out = tmp_path / "fresh"
+    with exclusive_writer(out):
+        pass  # a collection refused after taking the lock leaves only the lock file behind
+    assert [p.name for p in out.iterdir()] == [LOCK_NAME]
+    dataset = DemoDataset.create(out, capacity=10)  # not refused as "already holds files"
+    assert dataset.num_frames == 0
+    overwritten = DemoDataset.create(out, capacity=10, overwrite=True)
+    assert (out / LOCK_NAME).exists() and overwritten.num_frames == 0
+
+
+def test_wrong_length_memmap_with_right_size_metadata_is_caught(damaged, capsys):
+    """A memmap replaced by one of another shape (same key, other bytes) is refused too."""
+    action = damaged / STORAGE / "action.memmap"
+    np.zeros(7, dtype=np.float32).tofile(action)
+    fails_with(["data", "info", str(damaged)], capsys, "action.memmap", "bytes")
