@@ -57,6 +57,7 @@ CHANGES: dict[str, Callable[[TrainPolicyConfig], TrainPolicyConfig]] = {
     "adaptive-power-1": _policy(adaptive_power=1.0),
     "adaptive-power-0.5": _policy(adaptive_power=0.5),
     "no-projection-layernorm": _encoder(project_norm=False),
+    "point-mlp-bfloat16": _encoder(point_dtype="bfloat16"),
     "points-128": _policy(num_points=128),
     "points-256": _policy(num_points=256),
     "batch-32": _training(batch_size=32),

@@ -123,3 +123,24 @@ def test_raw_clouds_get_the_identity_normalizer():
     torch.testing.assert_close(raw.normalize(cloud), cloud)
     low, high = frames["point_cloud"].reshape(-1, 3).amin(0), frames["point_cloud"].reshape(-1, 3).amax(0)
     torch.testing.assert_close(fitted.normalize(cloud), (cloud - (low + high) / 2) / ((high - low) / 2))
+
+
+def test_bfloat16_point_mlp_matches_float32_and_keeps_float32_weights():
+    """Same weights, two precisions: the bf16 encoder's features agree with the float32 ones to
+    bf16's resolution, gradients reach the float32 weights, and a bad dtype is refused."""
+    from d2a_agents.policy.networks import PointCloudEncoder
+
+    torch.manual_seed(0)
+    exact = PointCloudEncoder((32, 64), 16, point_dtype="float32")
+    fast = PointCloudEncoder((32, 64), 16, point_dtype="bfloat16")
+    fast.load_state_dict(exact.state_dict())
+    points = torch.rand(8, 2, 64, 3) * 2 - 1
+    reference, features = exact(points), fast(points)
+    assert features.dtype == torch.float32
+    assert not torch.equal(features, reference)  # the MLP really ran in bf16
+    assert (features - reference).abs().max() < 0.05 * reference.abs().max()
+    features.square().mean().backward()
+    first = fast.point_mlp[0].weight
+    assert first.dtype == torch.float32 and first.grad is not None and first.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="point_dtype"):
+        EncoderConfig(point_dtype="float16")

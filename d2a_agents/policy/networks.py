@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+POINT_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
 
 @dataclass(frozen=True)
 class EncoderConfig:
@@ -37,6 +39,14 @@ class EncoderConfig:
     use_cloud: bool = True  # False: the low-dimensional observation alone (the privileged-state reference)
     state_key: str = "agent_pos"  # the low-dimensional observation: "agent_pos" or the full "state"
     project_norm: bool = True  # LayerNorm after the cloud projection (DP3); without it the features can collapse
+    # Precision of the per-point MLP, the bulk of a training step: "bfloat16" runs it under
+    # autocast (weights, max-pool output and projection stay float32). 1.4x faster on a CPU
+    # with native bf16 (AVX512-BF16 / AMX; `d2a bench train`), slower on one without.
+    point_dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        if self.point_dtype not in POINT_DTYPES:
+            raise ValueError(f"point_dtype must be one of {tuple(POINT_DTYPES)}, got {self.point_dtype!r}")
 
 
 @dataclass(frozen=True)
@@ -52,8 +62,12 @@ class VelocityNetConfig:
 class PointCloudEncoder(nn.Module):
     """Per-point MLP with LayerNorm + ReLU, max-pool over points, linear projection (+ LayerNorm)."""
 
-    def __init__(self, widths: tuple[int, ...], out_dim: int, in_dim: int = 3, project_norm: bool = True) -> None:
+    def __init__(
+        self, widths: tuple[int, ...], out_dim: int, in_dim: int = 3, project_norm: bool = True,
+        point_dtype: str = "float32",
+    ) -> None:
         super().__init__()
+        self.point_dtype = POINT_DTYPES[point_dtype]
         layers: list[nn.Module] = []
         for width in widths:
             # in place: the per-point activations dominate a training step's memory traffic
@@ -65,7 +79,10 @@ class PointCloudEncoder(nn.Module):
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """(..., N, 3) -> (..., out_dim)."""
-        return self.project(self.point_mlp(points[..., :3]).max(dim=-2).values)
+        low_precision = self.point_dtype != torch.float32
+        with torch.autocast(points.device.type, dtype=self.point_dtype, enabled=low_precision):
+            features = self.point_mlp(points[..., :3]).max(dim=-2).values
+        return self.project(features.float())
 
 
 class ObservationEncoder(nn.Module):
@@ -83,7 +100,8 @@ class ObservationEncoder(nn.Module):
         self.config = config
 
         def cloud_encoder() -> PointCloudEncoder:
-            return PointCloudEncoder(config.point_widths, config.embed_dim, project_norm=config.project_norm)
+            return PointCloudEncoder(config.point_widths, config.embed_dim, project_norm=config.project_norm,
+                                     point_dtype=config.point_dtype)
 
         self.cloud = cloud_encoder() if config.use_cloud else None
         self.imagined = cloud_encoder() if config.use_imagination else None
