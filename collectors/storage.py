@@ -28,7 +28,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 
-from d2a.atomic import LOCK_NAME, atomic_write_text, holds_only_lock
+from d2a.atomic import atomic_write_text, holds_only_lock, is_lock_file
 
 FORMAT = "d2a-demonstrations"
 # v2: clouds show the scene's visible sites (goal markers); v1 clouds did not.
@@ -177,7 +177,7 @@ class DemoDataset:
                 raise DatasetError(f"{directory} already holds files; pass --append to add to it or --overwrite")
             refuse_foreign(directory)
             for entry in directory.iterdir():
-                if entry.name != LOCK_NAME:
+                if not is_lock_file(entry):
                     shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
         directory.mkdir(parents=True, exist_ok=True)
         dataset = cls(directory, DatasetMetadata(capacity=capacity, versions=package_versions()),

@@ -42,16 +42,21 @@ class DirectoryBusyError(ValueError):
 
 
 @contextmanager
-def exclusive_writer(directory: str | Path) -> Iterator[Path]:
+def exclusive_writer(directory: str | Path, lock_name: str = LOCK_NAME) -> Iterator[Path]:
     """Hold ``directory``'s writer lock (creating the directory) for the ``with`` block.
 
     A second writer is refused at once rather than queued: two collections or two trainings
-    into one directory are a mistake to report, not a race to serialise. The lock is an
-    ``flock`` on :data:`LOCK_NAME`, so the system releases it when its process dies.
+    into one place are a mistake to report, not a race to serialise. The lock is an ``flock``
+    on ``lock_name``, so the system releases it when its process dies. A directory that
+    cannot be written is refused here, before any work.
     """
     directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    with open(directory / LOCK_NAME, "a") as handle:
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        handle = open(directory / lock_name, "a")
+    except OSError as error:
+        raise ValueError(f"cannot write to {directory}: {error.strerror or error}") from error
+    with handle:
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -59,6 +64,11 @@ def exclusive_writer(directory: str | Path) -> Iterator[Path]:
         yield directory
 
 
+def is_lock_file(path: Path) -> bool:
+    """Whether ``path`` is a writer lock of :func:`exclusive_writer` (``.<name>.lock``)."""
+    return path.name.startswith(".") and path.name.endswith(".lock")
+
+
 def holds_only_lock(directory: str | Path) -> bool:
-    """Whether ``directory`` is empty but for a writer lock (an untouched output directory)."""
-    return all(entry.name == LOCK_NAME for entry in Path(directory).iterdir())
+    """Whether ``directory`` is empty but for writer locks (an untouched output directory)."""
+    return all(is_lock_file(entry) for entry in Path(directory).iterdir())

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
@@ -21,16 +21,31 @@ def _parse_box(text: str | None) -> tuple[tuple[float, ...], tuple[float, ...]] 
     return tuple(values[:3]), tuple(values[3:])
 
 
+def _int_at_least(minimum: int) -> Callable[[str], int]:
+    """An argparse type: an integer >= ``minimum``, refused at the command line before any work."""
+
+    def integer(text: str) -> int:
+        value = int(text)  # a ValueError becomes argparse's "invalid integer value"
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        return value
+
+    return integer
+
+
+POSITIVE, NON_NEGATIVE = _int_at_least(1), _int_at_least(0)
+
+
 def _add_env_options(parser: argparse.ArgumentParser, several_tasks: bool = False) -> None:
     if several_tasks:
         parser.add_argument("--task", action="append", required=True, help="task name or env id; repeat for several")
     else:
         parser.add_argument("--task", default="hammer", help="task name or env id (see `d2a tasks`)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=NON_NEGATIVE, default=0)
     parser.add_argument("--backend", choices=("raycast", "render"), default=None)
     parser.add_argument("--cameras", default=None, help="comma-separated camera names, fused in the world frame")
-    parser.add_argument("--image-size", type=int, default=None)
-    parser.add_argument("--num-points", type=int, default=None)
+    parser.add_argument("--image-size", type=POSITIVE, default=None)
+    parser.add_argument("--num-points", type=POSITIVE, default=None)
     parser.add_argument("--crop-box", type=_parse_box, default=None, help="x0,y0,z0,x1,y1,z1 in metres")
     parser.add_argument("--hide-sites", action="store_true", help="leave MuJoCo sites (goal markers) out")
 
@@ -153,6 +168,9 @@ def cmd_eval(args: argparse.Namespace) -> None:
     else:
         from d2a_agents.policy.train import evaluate_checkpoint
 
+        if _env_kwargs(args):
+            raise ValueError(f"{args.policy} is evaluated in the env it was trained with; "
+                             f"the env options ({', '.join(_env_kwargs(args))}) apply to --policy expert only")
         result = evaluate_checkpoint(args.policy, args.task, args.episodes, args.seed, workers=args.workers,
                                      end_on_success=args.end_on_success)
     print(result.summary())
@@ -242,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     viz = commands.add_parser("viz", help="pictures").add_subparsers(dest="what", required=True)
     pointcloud = viz.add_parser("pointcloud", help="point cloud and crop box, several views")
     _add_env_options(pointcloud)
-    pointcloud.add_argument("--steps", type=int, default=0, help="random steps before the picture")
+    pointcloud.add_argument("--steps", type=NON_NEGATIVE, default=0, help="random steps before the picture")
     pointcloud.add_argument("--out", required=True)
     pointcloud.set_defaults(func=cmd_viz_pointcloud)
 
@@ -256,16 +274,16 @@ def build_parser() -> argparse.ArgumentParser:
     bench = commands.add_parser("bench", help="benchmarks (print figures)").add_subparsers(dest="what", required=True)
     bench_envs = bench.add_parser("envs", help="env steps/s per depth backend")
     bench_envs.add_argument("--task", default="hammer")
-    bench_envs.add_argument("--steps", type=int, default=100)
-    bench_envs.add_argument("--seed", type=int, default=0)
+    bench_envs.add_argument("--steps", type=POSITIVE, default=100)
+    bench_envs.add_argument("--seed", type=NON_NEGATIVE, default=0)
     bench_envs.set_defaults(func=cmd_bench_envs)
 
     collect = commands.add_parser("collect", help="scripted-expert demonstrations into a data set")
     _add_env_options(collect, several_tasks=True)
-    collect.add_argument("--episodes", type=int, default=10, help="successful episodes to keep per task")
+    collect.add_argument("--episodes", type=POSITIVE, default=10, help="successful episodes to keep per task")
     collect.add_argument("--out", required=True, help="data set directory")
-    collect.add_argument("--max-attempts-factor", type=int, default=3, help="give up after episodes x this attempts")
-    collect.add_argument("--max-episode-steps", type=int, default=200)
+    collect.add_argument("--max-attempts-factor", type=POSITIVE, default=3, help="give up after episodes x this")
+    collect.add_argument("--max-episode-steps", type=POSITIVE, default=200)
     mode = collect.add_mutually_exclusive_group()
     mode.add_argument("--append", action="store_true", help="add to (or resume) an existing data set")
     mode.add_argument("--overwrite", action="store_true", help="replace an existing data set")
@@ -276,21 +294,21 @@ def build_parser() -> argparse.ArgumentParser:
     train_wm.add_argument("--out", required=True, help="checkpoint file; an existing one is resumed")
     train_wm.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
                           help="cpu: 64x64x16 grid; paper: 128x128x32 (GPU work)")
-    train_wm.add_argument("--resolution", type=int, nargs=3, default=None, metavar=("X", "Y", "Z"))
-    train_wm.add_argument("--horizon", type=int, default=None, help="H, steps imagined ahead")
-    train_wm.add_argument("--history", type=int, default=None, help="past actions conditioning the model")
-    train_wm.add_argument("--channels", type=int, default=None, help="feature dimension C")
+    train_wm.add_argument("--resolution", type=POSITIVE, nargs=3, default=None, metavar=("X", "Y", "Z"))
+    train_wm.add_argument("--horizon", type=POSITIVE, default=None, help="H, steps imagined ahead")
+    train_wm.add_argument("--history", type=POSITIVE, default=None, help="past actions conditioning the model")
+    train_wm.add_argument("--channels", type=POSITIVE, default=None, help="feature dimension C")
     train_wm.add_argument("--feature-mode", choices=("triplane", "xy", "volume"), default=None)
     train_wm.add_argument("--plane-pooling", choices=("mean", "max"), default=None,
                           help="how the feature volume collapses onto each plane (default: the preset's)")
-    train_wm.add_argument("--steps", type=int, default=2000)
-    train_wm.add_argument("--batch-size", type=int, default=4)
+    train_wm.add_argument("--steps", type=POSITIVE, default=2000)
+    train_wm.add_argument("--batch-size", type=POSITIVE, default=4)
     train_wm.add_argument("--lr", type=float, default=1e-3)
-    train_wm.add_argument("--queries", type=int, default=8192)
-    train_wm.add_argument("--validate-every", type=int, default=500)
-    train_wm.add_argument("--seed", type=int, default=0)
+    train_wm.add_argument("--queries", type=POSITIVE, default=8192)
+    train_wm.add_argument("--validate-every", type=POSITIVE, default=500)
+    train_wm.add_argument("--seed", type=NON_NEGATIVE, default=0)
     train_wm.add_argument("--device", default="cpu", help="cpu or cuda")
-    train_wm.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    train_wm.add_argument("--threads", type=NON_NEGATIVE, default=0, help="torch threads (0: torch's default)")
     train_wm.set_defaults(func=cmd_train_wm)
 
     train_policy = commands.add_parser("train-policy", help="train a policy (d2a, mp1, dp3, ablations)")
@@ -302,13 +320,13 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
                               help="networks and budget: cpu (64 points, narrow, 4000 steps of 256, lr 1e-3) or "
                                    "paper (1024 points, 47k steps of 128, lr 1e-4; GPU work)")
-    train_policy.add_argument("--steps", type=int, default=None, help="default: the preset's")
-    train_policy.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
+    train_policy.add_argument("--steps", type=POSITIVE, default=None, help="default: the preset's")
+    train_policy.add_argument("--batch-size", type=POSITIVE, default=None, help="default: the preset's")
     train_policy.add_argument("--lr", type=float, default=None, help="default: the preset's")
-    train_policy.add_argument("--horizon", type=int, default=None, help="action chunk length (default 4)")
-    train_policy.add_argument("--n-obs-steps", type=int, default=None, help="default 2")
-    train_policy.add_argument("--n-action-steps", type=int, default=None, help="default 4")
-    train_policy.add_argument("--num-points", type=int, default=None,
+    train_policy.add_argument("--horizon", type=POSITIVE, default=None, help="action chunk length (default 4)")
+    train_policy.add_argument("--n-obs-steps", type=POSITIVE, default=None, help="default 2")
+    train_policy.add_argument("--n-action-steps", type=POSITIVE, default=None, help="default 4")
+    train_policy.add_argument("--num-points", type=POSITIVE, default=None,
                               help="points per cloud fed to the encoder (default: the preset's)")
     train_policy.add_argument("--cfg-similarity", choices=("velocity", "prediction"), default=None,
                               help="rho of the adaptive CFG gate: cos(u_cond, u_null) (default) or cos(v, u_null) "
@@ -321,21 +339,21 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--cfg-scale", type=float, default=None, help="k of --cfg-guidance amplify (default 1)")
     train_policy.add_argument("--adaptive-power", type=float, default=None,
                               help="MeanFlow's adaptive loss power p (0: plain squared error; default: the preset's)")
-    train_policy.add_argument("--holdout-episodes", type=int, default=0,
+    train_policy.add_argument("--holdout-episodes", type=NON_NEGATIVE, default=0,
                               help="hold out the last K episodes of each task for the perception check")
     train_policy.add_argument("--device", default="cpu", help="cpu or cuda (evaluation runs on the CPU)")
-    train_policy.add_argument("--threads", type=int, default=0, help="torch threads for training (0: torch's default)")
-    train_policy.add_argument("--eval-every", type=int, default=0, help="0: evaluate at the end only")
-    train_policy.add_argument("--eval-episodes", type=int, default=20)
-    train_policy.add_argument("--workers", type=int, default=1)
-    train_policy.add_argument("--seed", type=int, default=0)
+    train_policy.add_argument("--threads", type=NON_NEGATIVE, default=0, help="torch threads (0: torch's default)")
+    train_policy.add_argument("--eval-every", type=NON_NEGATIVE, default=0, help="0: evaluate at the end only")
+    train_policy.add_argument("--eval-episodes", type=NON_NEGATIVE, default=20)
+    train_policy.add_argument("--workers", type=POSITIVE, default=1)
+    train_policy.add_argument("--seed", type=NON_NEGATIVE, default=0)
     train_policy.set_defaults(func=cmd_train_policy)
 
     evaluation = commands.add_parser("eval", help="evaluate a policy checkpoint (or the scripted expert)")
     _add_env_options(evaluation)
     evaluation.add_argument("--policy", required=True, help="policy.pt of d2a train-policy, or 'expert'")
-    evaluation.add_argument("--episodes", type=int, default=100)
-    evaluation.add_argument("--workers", type=int, default=2)
+    evaluation.add_argument("--episodes", type=POSITIVE, default=100)
+    evaluation.add_argument("--workers", type=POSITIVE, default=2)
     evaluation.add_argument("--end-on-success", action="store_true",
                             help="end episodes at their first success (same success rate, faster; returns stop there)")
     evaluation.set_defaults(func=cmd_eval)
@@ -347,19 +365,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench_experts = bench.add_parser("experts", help="scripted-expert success on Meta-World, parallel speed-up")
     bench_experts.add_argument("--task", action="append", default=None, help="default: all 50 Meta-World tasks")
-    bench_experts.add_argument("--episodes", type=int, default=5)
-    bench_experts.add_argument("--workers", type=int, default=2)
+    bench_experts.add_argument("--episodes", type=POSITIVE, default=5)
+    bench_experts.add_argument("--workers", type=POSITIVE, default=2)
     bench_experts.set_defaults(func=cmd_bench_experts)
 
     bench_latency = bench.add_parser("latency", help="batch-1 CPU latency: MeanFlow 1 NFE vs DDIM 10 NFE, imagination")
     bench_latency.add_argument("--task", default="hammer")
-    bench_latency.add_argument("--num-points", type=int, default=1024)
-    bench_latency.add_argument("--repeats", type=int, default=50)
+    bench_latency.add_argument("--num-points", type=POSITIVE, default=1024)
+    bench_latency.add_argument("--repeats", type=POSITIVE, default=50)
     bench_latency.set_defaults(func=cmd_bench_latency)
 
     bench_train = bench.add_parser("train", help="policy training throughput (samples/s) per preset and variant")
-    bench_train.add_argument("--steps", type=int, default=None, help="timed steps per row (default 30)")
-    bench_train.add_argument("--threads", type=int, default=None, help="torch threads (default 1)")
+    bench_train.add_argument("--steps", type=POSITIVE, default=None, help="timed steps per row (default 30)")
+    bench_train.add_argument("--threads", type=POSITIVE, default=None, help="torch threads (default 1)")
     bench_train.add_argument("--device", default=None, help="cpu (default) or cuda")
     bench_train.set_defaults(func=cmd_bench_train)
 
@@ -370,16 +388,16 @@ def build_parser() -> argparse.ArgumentParser:
     bench_ablate.add_argument("--change", default="none", help="see benchmarks/ablation.py CHANGES")
     bench_ablate.add_argument("--algo", choices=ALGOS, default="mp1")
     bench_ablate.add_argument("--world-model", default=None, help="for the imagination variants")
-    bench_ablate.add_argument("--seed", type=int, default=0)
-    bench_ablate.add_argument("--episodes", type=int, default=100)
+    bench_ablate.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    bench_ablate.add_argument("--episodes", type=POSITIVE, default=100)
     bench_ablate.add_argument("--workdir", default="outputs/bench_ablation")
     bench_ablate.add_argument("--table", action="store_true", help="print the table of the finished runs")
     bench_ablate.set_defaults(func=cmd_bench_ablate)
 
     bench_wm = bench.add_parser("wm", help="world model IoU vs ablations and persistence (Table II)")
     bench_wm.add_argument("--task", action="append", default=None, help="default: hammer assembly push basketball")
-    bench_wm.add_argument("--steps", type=int, default=300)
-    bench_wm.add_argument("--resolution", type=int, nargs=3, default=None, metavar=("X", "Y", "Z"))
+    bench_wm.add_argument("--steps", type=POSITIVE, default=300)
+    bench_wm.add_argument("--resolution", type=POSITIVE, nargs=3, default=None, metavar=("X", "Y", "Z"))
     bench_wm.add_argument("--mode", action="append", choices=("triplane", "xy", "volume"), default=None,
                           help="default: triplane xy volume")
     bench_wm.add_argument("--plane-pooling", choices=("mean", "max"), default=None)
@@ -394,9 +412,9 @@ def build_parser() -> argparse.ArgumentParser:
                                help="default: hammer lever-pull assembly push stick-pull")
     bench_success.add_argument("--algo", action="append", default=None,
                                choices=ALGOS, help="default: d2a d2a-no-cfg mp1 dp3 mp1-state")
-    bench_success.add_argument("--seed", type=int, action="append", default=None, help="default: the preset's")
-    bench_success.add_argument("--steps", type=int, default=None, help="policy training steps (default: preset's)")
-    bench_success.add_argument("--workers", type=int, default=None, help="evaluation worker processes")
+    bench_success.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="default: the preset's")
+    bench_success.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
+    bench_success.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
     bench_success.add_argument("--workdir", default="outputs/bench_success",
                                help="data, models and finished cells; a rerun resumes")
     bench_success.set_defaults(func=cmd_bench_success)
@@ -404,11 +422,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo = commands.add_parser("demo", help="end to end on Hammer: collect, world model, D2A policy, evaluate")
     demo.add_argument("--task", default=None, help="default: hammer")
     demo.add_argument("--out", default=None, help="output directory (default: outputs/demo)")
-    demo.add_argument("--episodes", type=int, default=None, help="demonstrations (default 10)")
-    demo.add_argument("--wm-steps", type=int, default=None)
-    demo.add_argument("--policy-steps", type=int, default=None)
-    demo.add_argument("--eval-episodes", type=int, default=None)
-    demo.add_argument("--seed", type=int, default=None)
+    demo.add_argument("--episodes", type=POSITIVE, default=None, help="demonstrations (default 10)")
+    demo.add_argument("--wm-steps", type=POSITIVE, default=None)
+    demo.add_argument("--policy-steps", type=POSITIVE, default=None)
+    demo.add_argument("--eval-episodes", type=POSITIVE, default=None)
+    demo.add_argument("--seed", type=NON_NEGATIVE, default=None)
     demo.set_defaults(func=cmd_demo)
     return parser
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 from typing import Any
 
@@ -65,3 +66,12 @@ def load_for_resume(
                                       "choose another --out to start afresh")
             raise CheckpointError(f"{path} was trained with another {key} ({old}); choose another --out")
     return previous
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes: ties a checkpoint to the exact file it was trained with."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

@@ -45,6 +45,8 @@ def make_env(
     env = PointCloudObservation(_SUITE_ENVS[suite](task, state_obs=state_obs), config)
     if world_model is not None:
         from d2a_envs.imagination import ImaginationWrapper
+        from d2a_envs.tasks import TASKS
 
-        env = ImaginationWrapper(env, world_model)
+        name = next((spec.name for spec in TASKS if spec.suite == suite and spec.task == task), None)
+        env = ImaginationWrapper(env, world_model, task=name)
     return env

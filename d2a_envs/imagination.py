@@ -105,8 +105,9 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     The env's observation must be a ``Dict`` with ``point_cloud`` (any ``D2A-*`` env, or a
     :class:`~d2a_envs.wrappers.PointCloudObservation`). The world model must have been
-    trained with the env's crop box and action size; a mismatch raises
-    :class:`~d2a_agents.checkpoint.CheckpointError` here, not at the first step.
+    trained with the env's crop box and action size, and on ``task`` when it is given (the
+    ``D2A-*`` ids give it); a mismatch raises :class:`~d2a_agents.checkpoint.CheckpointError`
+    here, not at the first step.
 
     When the model predicts fewer occupied voxels than N, points are repeated, drawn from
     the wrapper's generator: it is seeded with ``seed`` and re-seeded by ``reset(seed=s)``,
@@ -125,8 +126,10 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         (1024, 3)
     """
 
-    def __init__(self, env: gym.Env, world_model: Imaginer | str | os.PathLike, seed: int = 0) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, world_model=world_model, seed=seed)
+    def __init__(
+        self, env: gym.Env, world_model: Imaginer | str | os.PathLike, seed: int = 0, task: str | None = None,
+    ) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, world_model=world_model, seed=seed, task=task)
         gym.Wrapper.__init__(self, env)
         space = env.observation_space
         if not isinstance(space, spaces.Dict) or "point_cloud" not in space.spaces:
@@ -142,6 +145,11 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         num_points = int(cloud_space.shape[0])
         self.imaginer = load_imaginer(world_model, num_points, seed)
         check_world_model(self.imaginer, crop_box, env.action_space.shape[0], _describe(world_model))
+        if task is not None and self.imaginer.tasks and task not in self.imaginer.tasks:
+            from d2a_agents.checkpoint import CheckpointError
+
+            raise CheckpointError(f"{_describe(world_model)} was trained on {list(self.imaginer.tasks)}, "
+                                  f"not on {task}: it cannot imagine this scene")
         self.crop_box = crop_box
         self.history_length = self.imaginer.config.action_history
         self.action_dim = self.imaginer.config.action_dim

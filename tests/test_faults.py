@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from collectors.storage import BUFFER_DIR, METADATA_FILE, DatasetError, DemoDataset
-from d2a.atomic import LOCK_NAME, DirectoryBusyError, exclusive_writer
+from d2a.atomic import LOCK_NAME, DirectoryBusyError, exclusive_writer, is_lock_file
 from d2a.cli import main
 from tests.conftest import SMALL_ENV_KWARGS
 
@@ -77,7 +77,8 @@ def test_non_finite_clouds_are_refused_before_training(damaged, capsys, tmp_path
     for command in (["train-policy", "--algo", "mp1"], ["train-wm"]):
         fails_with([*command, "--data", str(damaged), "--out", str(tmp_path / command[0] / "run")], capsys,
                    "point_cloud", "non-finite", "episode 1, step 50")
-        assert not (tmp_path / command[0]).exists()  # nothing was trained or written
+        written = [p for p in (tmp_path / command[0]).rglob("*") if p.is_file()]
+        assert all(is_lock_file(p) for p in written), written  # nothing trained, nothing saved
     assert fingerprint(damaged) == before
 
 
@@ -115,3 +116,20 @@ def test_wrong_length_memmap_with_right_size_metadata_is_caught(damaged, capsys)
     action = damaged / STORAGE / "action.memmap"
     np.zeros(7, dtype=np.float32).tofile(action)
     fails_with(["data", "info", str(damaged)], capsys, "action.memmap", "bytes")
+
+
+@pytest.mark.parametrize("command", [["train-policy", "--algo", "mp1"], ["train-wm"]])
+def test_a_second_trainer_into_the_same_output_is_refused(reach_data, tmp_path, capsys, command):
+    out = tmp_path / "run" / ("wm.pt" if command[0] == "train-wm" else "")
+    lock_dir, lock_name = (out.parent, f".{out.name}.lock") if command[0] == "train-wm" else (out, LOCK_NAME)
+    with exclusive_writer(lock_dir, lock_name):  # another trainer is running
+        fails_with([*command, "--data", reach_data, "--out", str(out), "--steps", "1"], capsys,
+                   "another process is writing to")
+
+
+def test_an_output_that_cannot_be_written_is_refused_before_training(reach_data, tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory")
+    fails_with(["train-policy", "--algo", "mp1", "--data", reach_data, "--out", str(blocker / "run"),
+                "--steps", "1"], capsys, "cannot write to")
+    assert blocker.read_text() == "not a directory"

@@ -29,7 +29,7 @@ ACTIONS = np.array(  # K + 2 distinct actions, so the history must drop the olde
 
 
 def write_world_model(path: Path, box: tuple = (CROP_BOX.low, CROP_BOX.high), action_dim: int = 4,
-                      kind: str = CHECKPOINT_KIND) -> Path:
+                      kind: str = CHECKPOINT_KIND, tasks: tuple[str, ...] = ("hammer",)) -> Path:
     """A tiny untrained world model in the payload format of ``train_world_model``.
 
     The FiLM head is zero-initialised (actions have no effect before training), so it is
@@ -49,7 +49,7 @@ def write_world_model(path: Path, box: tuple = (CROP_BOX.low, CROP_BOX.high), ac
     save_checkpoint(path, kind, {
         "config": config.to_dict(),
         "grid": {"box": {"low": tuple(box[0]), "high": tuple(box[1])}, "resolution": list(config.resolution)},
-        "tasks": ["hammer-v3"], "env_kwargs": {"hammer-v3": ENV_KWARGS}, "num_points": NUM_POINTS,
+        "tasks": list(tasks), "env_kwargs": {task: ENV_KWARGS for task in tasks}, "num_points": NUM_POINTS,
         "model": model.state_dict(), "step": 0, "history": [],
     })
     return path
@@ -104,11 +104,12 @@ def test_action_history_is_reset_and_holds_the_last_k_actions_in_order(checkpoin
         (lambda p: write_world_model(p, box=((-0.5, 0.25, 0.005), (0.6, 0.97, 0.7))), "crop box"),
         (lambda p: write_world_model(p, action_dim=6), "6-d actions"),
         (lambda p: write_world_model(p, kind="policy"), "not a world_model"),
+        (lambda p: write_world_model(p, tasks=("push",)), r"trained on \['push'\], not on hammer"),
         (lambda p: torch.save({"model": {}}, p), "not a D2A checkpoint"),
         (lambda p: p.write_text("not a checkpoint"), "not a readable checkpoint"),
         (lambda p: None, "no checkpoint at"),
     ],
-    ids=["other-crop-box", "other-action-size", "other-kind", "foreign-dict", "text-file", "missing"],
+    ids=["other-crop-box", "other-action-size", "other-kind", "other-task", "foreign-dict", "text-file", "missing"],
 )
 def test_a_world_model_that_does_not_fit_is_refused(tmp_path: Path, make_bad, message: str) -> None:
     path = tmp_path / "bad.pt"

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -65,10 +67,25 @@ def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_mode
     policy, history = train_policy(policy_config("d2a", reach_data, tmp_path, world_model=world_model))
     assert policy.config.encoder.use_imagination
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
-    assert eval_env_kwargs(payload, "reach")["world_model"] == world_model  # acts with imagination
+    # acts with imagination, from the world model's absolute path (any working directory)
+    assert eval_env_kwargs(payload, "reach")["world_model"] == str(Path(world_model).resolve())
     gate = [(row["cfg_weight"], row["cfg_rho"], row["cfg_active"]) for row in payload["metrics"]]
     assert len(gate) == 3 and all(0 <= w <= 1 and -1 <= rho <= 1 and 0 <= active <= 1 for w, rho, active in gate)
     assert history[0].episodes == 1
+
+
+def test_a_policy_refuses_a_world_model_swapped_after_training(reach_data, world_model, tmp_path):
+    own = tmp_path / "wm.pt"
+    shutil.copy(world_model, own)
+    train_policy(policy_config("d2a", reach_data, tmp_path / "run", world_model=str(own), steps=1))
+    payload = load_checkpoint(tmp_path / "run" / CHECKPOINT_NAME, "policy")
+    with open(own, "ab") as handle:
+        handle.write(b"another model")  # same path, other bytes
+    with pytest.raises(CheckpointError, match="has changed"):
+        eval_env_kwargs(payload, "reach")
+    own.unlink()
+    with pytest.raises(CheckpointError, match="missing"):
+        eval_env_kwargs(payload, "reach")
 
 
 def test_held_out_episodes_are_not_trained_on_and_serve_the_perception_check(reach_data, tmp_path):

@@ -27,7 +27,8 @@ from tqdm import tqdm
 from collectors.dataset import DemoWindows, Normalizer, WindowConfig, episode_bounds
 from collectors.evaluation import EvaluationResult, evaluate
 from collectors.storage import DemoDataset
-from d2a_agents.checkpoint import CheckpointError, load_checkpoint, load_for_resume, save_checkpoint
+from d2a.atomic import exclusive_writer
+from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint, load_for_resume, save_checkpoint
 from d2a_agents.policy.agent import (
     CPU_POLICY_PRESET,
     IMAGINED_KEY,
@@ -200,8 +201,15 @@ def fit_policy_normalizers(frames: TensorDict, config: PolicyConfig) -> dict[str
     return {**normalizers, **{key: Normalizer.fit(value) for key, value in data.items()}}
 
 
+def policy_file(path: str | Path) -> Path:
+    """The checkpoint a path names: the file itself, or a run directory's ``policy.pt``."""
+    path = Path(path)
+    return path / CHECKPOINT_NAME if path.is_dir() else path
+
+
 def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, Any]]:
-    """The policy of a checkpoint (EMA weights by default) and the checkpoint's metadata."""
+    """The policy of a checkpoint (a file or a run directory; EMA weights by default) and its metadata."""
+    path = policy_file(path)
     payload = load_checkpoint(path, CHECKPOINT_KIND)
     try:
         config = PolicyConfig.from_dict(payload["policy_config"])
@@ -226,8 +234,13 @@ def load_torchrl_policy(path: str | Path) -> TorchRLPolicy:
 def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
     """The env settings the policy was trained with, plus its world model when it imagines."""
     kwargs = {k: v for k, v in payload["env_kwargs"][task].items() if k != "max_episode_steps"}
-    if payload["world_model"] is not None:
-        kwargs["world_model"] = payload["world_model"]
+    world_model = payload["world_model"]
+    if world_model is not None:
+        if not Path(world_model).is_file():
+            raise CheckpointError(f"the policy's world model {world_model} is missing")
+        if file_sha256(world_model) != payload.get("world_model_sha256"):
+            raise CheckpointError(f"the policy's world model {world_model} has changed since the policy was trained")
+        kwargs["world_model"] = world_model
     return kwargs
 
 
@@ -239,6 +252,7 @@ def evaluate_checkpoint(
     point-cloud settings, its world model when it imagines); a task it was not trained on,
     or a checkpoint it cannot read, is refused before any worker starts. ``end_on_success``:
     see :func:`~collectors.evaluation.evaluate`."""
+    path = policy_file(path)
     _, payload = load_policy(path)
     name = get_task(task).name
     if name not in payload["env_kwargs"]:
@@ -270,7 +284,15 @@ def _reliance_batch(windows: DemoWindows, config: TrainPolicyConfig) -> TensorDi
 
 
 def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoint]]:
-    """Train (or resume) a policy; returns the EMA policy and its evaluation history."""
+    """Train (or resume) a policy; returns the EMA policy and its evaluation history.
+
+    The run directory is locked for the whole run: a second trainer into it is refused.
+    """
+    with exclusive_writer(config.out):
+        return _train_policy(config)
+
+
+def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoint]]:
     if config.threads:
         torch.set_num_threads(config.threads)
     device = torch.device(config.device)
@@ -303,11 +325,14 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
     generator = torch.Generator(device=device).manual_seed(config.seed)
     out = Path(config.out)
     path = out / CHECKPOINT_NAME
+    # Absolute, so the policy evaluates from any directory; hashed, so a swapped file is caught.
+    world_model_path = str(Path(config.world_model).resolve()) if config.world_model else None
+    world_model_hash = file_sha256(world_model_path) if world_model_path else None
     static = {
         "policy_config": config.policy.to_dict(), "action_dim": policy.action_dim, "state_dim": policy.state_dim,
-        "normalizers": {key: n.state_dict() for key, n in normalizers.items()}, "world_model": config.world_model,
-        "tasks": tasks, "env_kwargs": dataset.metadata.tasks, "data": str(config.data),
-        "held_out_episodes": held_ids,
+        "normalizers": {key: n.state_dict() for key, n in normalizers.items()}, "world_model": world_model_path,
+        "world_model_sha256": world_model_hash, "tasks": tasks, "env_kwargs": dataset.metadata.tasks,
+        "data": str(config.data), "held_out_episodes": held_ids,
         "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "policy"},
         "run_config": {k: v for k, v in dataclasses.asdict(config).items()
                        if k not in RESUMABLE_CHANGES and k != "policy"},

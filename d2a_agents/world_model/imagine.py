@@ -79,9 +79,10 @@ class Imaginer:
 
     def __init__(
         self, model: TriplaneWorldModel, grid: VoxelGrid, num_points: int, band: int = 4, threshold: float = 0.5,
-        seed: int = 0, keep_observed_points: bool = True,
+        seed: int = 0, keep_observed_points: bool = True, tasks: tuple[str, ...] = (),
     ) -> None:
         self.model = model.eval()
+        self.tasks = tuple(tasks)  # the tasks it was trained on (empty: unknown)
         self.grid = grid
         self.num_points = num_points
         self.band = band
@@ -105,6 +106,7 @@ class Imaginer:
         box = CropBox(**payload["grid"]["box"])
         grid = VoxelGrid(box, tuple(payload["grid"]["resolution"]))
         kwargs.setdefault("threshold", payload.get("threshold", 0.5))
+        kwargs.setdefault("tasks", tuple(payload.get("tasks", ())))
         return cls(model, grid, num_points or payload["num_points"], **kwargs)
 
     def check_compatible(self, crop_box: CropBox, action_dim: int) -> None:

@@ -18,6 +18,7 @@ import torch
 from tqdm import tqdm
 
 from collectors.storage import DemoDataset
+from d2a.atomic import exclusive_writer
 from d2a_agents.checkpoint import load_for_resume, save_checkpoint
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import CHECKPOINT_KIND, logit, predict_grid, predict_logits
@@ -159,7 +160,16 @@ def _payload(config: TrainWorldModelConfig, dataset: DemoDataset, grid: VoxelGri
 
 
 def train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel, list[ValidationResult]]:
-    """Train (or resume) and return the model (on the CPU) and its validation history."""
+    """Train (or resume) and return the model (on the CPU) and its validation history.
+
+    The checkpoint file is locked for the whole run: a second trainer into it is refused.
+    """
+    out = Path(config.out)
+    with exclusive_writer(out.parent, lock_name=f".{out.name}.lock"):
+        return _train_world_model(config)
+
+
+def _train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldModel, list[ValidationResult]]:
     if config.threads:
         torch.set_num_threads(config.threads)
     device = torch.device(config.device)
