@@ -32,13 +32,21 @@ PREVIOUS_CPU_PRESET = PolicyPreset(
 )
 
 
+# The cpu preset with its per-point MLP in float32 (the preset runs it in bfloat16).
+FLOAT32_POINTS_CPU_PRESET = dataclasses.replace(POLICY_PRESETS["cpu"], policy=dataclasses.replace(
+    POLICY_PRESETS["cpu"].policy, encoder=dataclasses.replace(POLICY_PRESETS["cpu"].policy.encoder,
+                                                              point_dtype="float32")))
+
+
 @dataclass(frozen=True)
 class TrainBenchConfig:
     """What ``d2a bench train`` times: (label, preset, algo) rows."""
 
     rows: tuple[tuple[str, PolicyPreset, str], ...] = (
         ("previous cpu", PREVIOUS_CPU_PRESET, "mp1"),
+        ("cpu, float32 point MLP", FLOAT32_POINTS_CPU_PRESET, "mp1"),
         ("cpu", POLICY_PRESETS["cpu"], "mp1"),
+        ("cpu, float32 point MLP", FLOAT32_POINTS_CPU_PRESET, "d2a"),
         ("cpu", POLICY_PRESETS["cpu"], "d2a"),
         ("cpu", POLICY_PRESETS["cpu"], "dp3"),
         ("cpu", POLICY_PRESETS["cpu"], "mp1-state"),

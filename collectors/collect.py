@@ -86,11 +86,13 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
             continue
         if record.seed == config.seed:
             return record
-        if record.seed <= config.seed < record.seed + record.attempts:
+        # The attempts this run may make must not reuse a seed: that would store an episode twice.
+        last = config.seed + config.episodes * config.max_attempts_factor - 1
+        if record.attempts and config.seed <= record.seed + record.attempts - 1 and record.seed <= last:
             raise DatasetError(
-                f"seed {config.seed} was already used for {task} (seeds {record.seed}.."
-                f"{record.seed + record.attempts - 1}); pass --seed {record.seed} to resume that collection "
-                f"or a seed outside that range"
+                f"seeds {config.seed}..{last} (this run's attempts) overlap seeds {record.seed}.."
+                f"{record.seed + record.attempts - 1}, already used for {task}; pass --seed {record.seed} to resume "
+                f"that collection or a seed from {record.seed + record.attempts} on"
             )
     record = CollectionRecord(task=task, seed=config.seed)
     dataset.metadata.collections.append(record)

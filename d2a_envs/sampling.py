@@ -33,10 +33,13 @@ class CropBox:
 
     @classmethod
     def from_any(cls, box: CropBox | Sequence[Sequence[float]]) -> CropBox:
-        """Accept a ``CropBox`` or a ``((x0, y0, z0), (x1, y1, z1))`` pair."""
+        """Accept a ``CropBox``, a ``((x0, y0, z0), (x1, y1, z1))`` pair or six numbers."""
         if isinstance(box, CropBox):
             return box
-        low, high = box
+        corners = np.asarray(box, dtype=float)
+        if corners.size != 6:
+            raise ValueError(f"a crop box is two corners of 3 numbers (or 6 numbers), got {box!r}")
+        low, high = corners.reshape(2, 3)
         return cls(low=tuple(low), high=tuple(high))
 
     def contains(self, points: np.ndarray) -> np.ndarray:

@@ -49,8 +49,8 @@ class PointCloudConfig:
         if len(size) != 2 or min(size) <= 0:
             raise ValueError(f"image_size must be a positive int or (height, width), got {self.image_size}")
         object.__setattr__(self, "image_size", (int(size[0]), int(size[1])))
-        if int(self.num_points) <= 0:
-            raise ValueError(f"num_points must be positive, got {self.num_points}")
+        if isinstance(self.num_points, bool) or int(self.num_points) != self.num_points or self.num_points <= 0:
+            raise ValueError(f"num_points must be a positive integer, got {self.num_points!r}")
         object.__setattr__(self, "num_points", int(self.num_points))
         if self.backend not in DEPTH_BACKENDS:
             raise ValueError(f"unknown depth backend {self.backend!r}; choose one of {DEPTH_BACKENDS}")

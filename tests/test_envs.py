@@ -87,6 +87,14 @@ def test_unseeded_resets_give_new_layouts():
     assert len(positions) == 3
 
 
+def test_a_crop_box_of_six_numbers_is_two_corners():
+    env = make("hammer", crop_box=[-0.6, 0.25, 0.005, 0.6, 0.97, 0.7], **SMALL)
+    expected = d2a_envs.make_env("metaworld", "hammer-v3", crop_box=((-0.6, 0.25, 0.005), (0.6, 0.97, 0.7)), **SMALL)
+    observation, _ = env.reset(seed=0)
+    reference, _ = expected.reset(seed=0)
+    np.testing.assert_array_equal(observation["point_cloud"], reference["point_cloud"])
+
+
 def test_points_respect_a_custom_crop_box_and_fill_by_resampling():
     box = ((-0.1, 0.5, 0.02), (0.1, 0.7, 0.2))  # a small box around the hand's start
     env = make("push", crop_box=box, num_points=2048)
@@ -200,7 +208,9 @@ def test_unknown_task_suggests_close_ids():
     "kwargs, message",
     [
         (dict(cameras=("nope",)), "unknown camera 'nope'; this model has cameras"),
-        (dict(num_points=0), "num_points must be positive"),
+        (dict(num_points=0), "num_points must be a positive integer"),
+        (dict(num_points=2.5), "num_points must be a positive integer"),
+        (dict(crop_box=(0, 0, 0, 1, 1)), "two corners of 3 numbers"),
         (dict(crop_box=((0, 0, 1), (1, 1, 0))), "inverted"),
         (dict(backend="vulkan"), "unknown depth backend"),
         (dict(crop_box=((5, 5, 5), (6, 6, 6))), "no point seen by cameras"),

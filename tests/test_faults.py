@@ -133,3 +133,18 @@ def test_an_output_that_cannot_be_written_is_refused_before_training(reach_data,
     fails_with(["train-policy", "--algo", "mp1", "--data", reach_data, "--out", str(blocker / "run"),
                 "--steps", "1"], capsys, "cannot write to")
     assert blocker.read_text() == "not a directory"
+
+
+def test_a_world_model_batch_larger_than_the_data_is_refused(reach_data, tmp_path, capsys):
+    fails_with(["train-wm", "--data", reach_data, "--out", str(tmp_path / "wm.pt"), "--batch-size", "100000",
+                "--resolution", "16", "16", "8"], capsys, "batch size 100000 exceeds")
+    assert not (tmp_path / "wm.pt").exists()
+
+
+def test_an_append_whose_seeds_overlap_a_stored_collection_is_refused(damaged, capsys):
+    """The stored collection used seeds 0..1; a run from seed 1 (or from 0 backwards) would repeat them."""
+    before = fingerprint(damaged)
+    common = ["collect", "--task", "reach", "--episodes", "2", "--append", "--out", str(damaged),
+              "--image-size", str(SMALL_ENV_KWARGS["image_size"]), "--num-points", str(SMALL_ENV_KWARGS["num_points"])]
+    fails_with([*common, "--seed", "1"], capsys, "overlap seeds 0..1")
+    assert fingerprint(damaged) == before

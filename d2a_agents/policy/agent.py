@@ -151,7 +151,7 @@ class PolicyConfig:
 # (p = 0). See POLICY_PRESETS in train.py for the budget and docs/perception.md for the
 # ablations behind it.
 CPU_POLICY_PRESET = PolicyConfig(
-    num_points=64, adaptive_power=0.0, encoder=EncoderConfig(point_widths=(32, 64, 128)),
+    num_points=64, adaptive_power=0.0, encoder=EncoderConfig(point_widths=(32, 64, 128), point_dtype="bfloat16"),
     network=VelocityNetConfig(hidden=128, layers=3),
 )
 

@@ -183,6 +183,9 @@ def _train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldMode
     frames = dataset.frames()
     train = WorldModelTransitions(frames, grid, model_config.horizon, model_config.action_history, train_ids)
     held_out = WorldModelTransitions(frames, grid, model_config.horizon, model_config.action_history, held_out_ids)
+    if config.batch_size > len(train):
+        raise ValueError(f"batch size {config.batch_size} exceeds the {len(train)} training transitions of "
+                         f"{config.data}: draws would repeat within a batch; lower --batch-size")
 
     torch.manual_seed(config.seed)
     model = TriplaneWorldModel(model_config).to(device)
