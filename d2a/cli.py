@@ -437,7 +437,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
-    except ValueError as error:  # bad user input: say what is wrong, no traceback
+    except (ValueError, FloatingPointError) as error:  # bad input or a diverged run: say what, no traceback
         sys.exit(f"d2a: error: {error}")
 
 

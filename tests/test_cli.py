@@ -94,3 +94,17 @@ def test_abbreviated_options_are_refused(captured, capsys):
     with pytest.raises(SystemExit):
         main(["train-policy", "--data", "d", "--out", "o", "--eval-ev", "5"])  # --eval-every, abbreviated
     assert "unrecognized arguments: --eval-ev" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["eval", "--policy", "p.pt", "--seed", "-1"], "argument --seed: must be at least 0, got -1"),
+    (["bench", "envs", "--steps", "0"], "argument --steps: must be at least 1, got 0"),
+    (["train-wm", "--data", "d", "--out", "o", "--batch-size", "0"], "argument --batch-size: must be at least 1"),
+    (["train-policy", "--data", "d", "--out", "o", "--num-points", "0"], "argument --num-points: must be at least 1"),
+    (["collect", "--task", "reach", "--out", "o", "--seed", "1.5"], "argument --seed: invalid integer value: '1.5'"),
+])
+def test_integer_flags_are_checked_before_any_work(captured, capsys, argv, message):
+    with pytest.raises(SystemExit) as stopped:
+        main(argv)
+    assert stopped.value.code == 2 and message in capsys.readouterr().err
+    assert "config" not in captured  # the command never ran

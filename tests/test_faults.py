@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from collectors.storage import BUFFER_DIR, METADATA_FILE, DatasetError, DemoDataset
 from d2a.atomic import LOCK_NAME, DirectoryBusyError, exclusive_writer, is_lock_file
@@ -148,3 +149,29 @@ def test_an_append_whose_seeds_overlap_a_stored_collection_is_refused(damaged, c
               "--image-size", str(SMALL_ENV_KWARGS["image_size"]), "--num-points", str(SMALL_ENV_KWARGS["num_points"])]
     fails_with([*common, "--seed", "1"], capsys, "overlap seeds 0..1")
     assert fingerprint(damaged) == before
+
+
+def test_a_diverging_policy_run_stops_and_keeps_its_last_finite_checkpoint(reach_data, tmp_path, monkeypatch):
+    import d2a_agents.policy.train as trainer
+    from d2a_agents.checkpoint import load_checkpoint
+    from d2a_agents.policy.agent import PolicyConfig
+    from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
+
+    real_step, calls = trainer.training_step, []
+
+    def diverging_step(*args, **kwargs):
+        calls.append(1)
+        info = real_step(*args, **kwargs)
+        return {**info, "mse": float("nan")} if len(calls) == 3 else info
+
+    monkeypatch.setattr(trainer, "training_step", diverging_step)
+    out = tmp_path / "run"
+    tiny = PolicyConfig(algo="mp1", num_points=16, encoder=EncoderConfig(point_widths=(8,)),
+                        network=VelocityNetConfig(hidden=16, layers=1))
+    config = trainer.TrainPolicyConfig(data=reach_data, out=str(out), policy=tiny, steps=6, batch_size=4,
+                                       eval_episodes=0, checkpoint_every=2, progress=False)
+    with pytest.raises(FloatingPointError, match="loss became nan at step 3.*keeps the last finite checkpoint"):
+        trainer.train_policy(config)
+    payload = load_checkpoint(out / "policy.pt", "policy")
+    assert payload["step"] == 2
+    assert all(torch.isfinite(value).all() for value in payload["model"].values() if value.is_floating_point())
