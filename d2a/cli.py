@@ -112,7 +112,7 @@ def cmd_train_wm(args: argparse.Namespace) -> None:
 
     base = CPU_PRESET if args.preset == "cpu" else WorldModelConfig()
     model = _replace_given(base, horizon=args.horizon, action_history=args.history, channels=args.channels,
-                           feature_mode=args.feature_mode, plane_pooling=args.plane_pooling,
+                           feature_mode=args.feature_mode, plane_pooling=args.plane_pooling, encoder=args.encoder,
                            resolution=tuple(args.resolution) if args.resolution else None)
     config = TrainWorldModelConfig(
         data=args.data, out=args.out, model=model, steps=args.steps, batch_size=args.batch_size,
@@ -301,6 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
     train_wm.add_argument("--feature-mode", choices=("triplane", "xy", "volume"), default=None)
     train_wm.add_argument("--plane-pooling", choices=("mean", "max"), default=None,
                           help="how the feature volume collapses onto each plane (default: the preset's)")
+    train_wm.add_argument("--encoder", choices=("volume-conv", "point-scatter"), default=None,
+                          help="volume-conv: Conv3d over the grid (the paper); point-scatter: per-voxel MLP "
+                               "scattered onto the planes, cost follows the occupied voxels")
     train_wm.add_argument("--steps", type=POSITIVE, default=2000)
     train_wm.add_argument("--batch-size", type=POSITIVE, default=4)
     train_wm.add_argument("--lr", type=float, default=1e-3)

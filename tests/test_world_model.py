@@ -779,3 +779,44 @@ def test_transitions_of_selected_episodes_and_sampling():
     assert {row_of(g) for g in sample.current} <= {5, 6, 7}
     with pytest.raises(ValueError, match="unknown episode"):
         WorldModelTransitions(line_frames(), LINE_GRID, horizon=2, action_history=3, episodes=[7])
+
+
+# --- the point-scatter encoder ---------------------------------------------------------
+
+
+def test_point_scatter_planes_equal_max_pooling_a_dense_feature_volume():
+    """The scatter route against the dense one it replaces: a volume holding each occupied
+    voxel's features (0 elsewhere), max-pooled along each axis."""
+    torch.manual_seed(0)
+    resolution = (6, 5, 4)
+    config = WorldModelConfig(resolution=resolution, channels=4, encoder="point-scatter", refine_dilations=(1,))
+    model = TriplaneWorldModel(config)
+    torch.nn.init.normal_(model.film[-1].weight)  # a non-trivial FiLM
+    occupancy = torch.rand(2, *resolution) < 0.2
+    actions = torch.randn(2, config.action_history, config.action_dim)
+    gamma, beta = model.film(actions.flatten(1)).chunk(2, dim=-1)
+    planes = model._scatter_planes(occupancy, gamma, beta)
+
+    volume = torch.zeros(2, config.channels, *resolution)
+    for b, x, y, z in itertools.product(range(2), *(range(n) for n in resolution)):
+        if occupancy[b, x, y, z]:
+            centre = (torch.tensor([x, y, z]) + 0.5) / torch.tensor(resolution) * 2 - 1
+            volume[b, :, x, y, z] = torch.relu(model.encoder(centre) * (1 + gamma[b]) + beta[b])
+    for plane, axis in zip(planes, (4, 3, 2), strict=True):
+        torch.testing.assert_close(plane, volume.amax(dim=axis))
+
+
+def test_point_scatter_model_trains_and_serves_xy_but_not_volume():
+    config = WorldModelConfig(resolution=(8, 8, 4), channels=4, encoder="point-scatter", refine_dilations=(1,))
+    model = TriplaneWorldModel(config)
+    occupancy = torch.rand(2, 8, 8, 4) < 0.1
+    logits = model(occupancy, torch.randn(2, config.action_history, 4), torch.rand(2, 16, 3) * 2 - 1)
+    logits.sum().backward()
+    assert logits.shape == (2, 16) and model.encoder[0].weight.grad is not None
+    xy = TriplaneWorldModel(WorldModelConfig(resolution=(8, 8, 4), channels=4, encoder="point-scatter",
+                                             feature_mode="xy", refine_dilations=(1,)))
+    assert len(xy.encode(occupancy, torch.zeros(2, 4, 4))) == 2  # the xy plane and the occupancy skip
+    with pytest.raises(ValueError, match="point-scatter encoder builds planes"):
+        WorldModelConfig(encoder="point-scatter", feature_mode="volume")
+    with pytest.raises(ValueError, match="encoder must be one of"):
+        WorldModelConfig(encoder="sparse")

@@ -9,10 +9,15 @@ import torch.nn.functional as F
 def near_band(occupancy: torch.Tensor, distance: int) -> torch.Tensor:
     """Voxels within ``distance`` voxels (Chebyshev) of an occupied one, occupied ones included.
 
-    ``occupancy`` is (B, X, Y, Z) bool; so is the result.
+    ``occupancy`` is (B, X, Y, Z) bool; so is the result. A max over a cube is a max along
+    each axis in turn, so the dilation runs as three 1-D passes (3 k instead of k^3
+    comparisons per voxel: 8x fewer at k = 5, the bulk of a 128x128x32 training step).
     """
-    kernel = 2 * distance + 1
-    dilated = F.max_pool3d(occupancy.float().unsqueeze(1), kernel, stride=1, padding=distance)
+    kernel, dilated = 2 * distance + 1, occupancy.float().unsqueeze(1)
+    for axis in range(3):
+        size, pad = [1, 1, 1], [0, 0, 0]
+        size[axis], pad[axis] = kernel, distance
+        dilated = F.max_pool3d(dilated, tuple(size), stride=1, padding=tuple(pad))
     return dilated.squeeze(1) > 0
 
 

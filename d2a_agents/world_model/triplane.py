@@ -25,6 +25,7 @@ from torch import nn
 
 FEATURE_MODES = ("triplane", "xy", "volume")
 PLANE_POOLINGS = ("mean", "max")
+ENCODERS = ("volume-conv", "point-scatter")
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,11 @@ class WorldModelConfig:
         pe_frequencies: sinusoidal positional-embedding frequencies per axis.
         decoder_hidden, decoder_layers: width and depth of the occupancy MLP.
         occupancy_skip: also feed the current occupancy at the query to the decoder.
+        encoder: ``volume-conv`` (the paper: Conv3d over the whole grid, then axis-wise
+            pooling) or ``point-scatter``: a per-point MLP over the occupied voxels (FiLM
+            from the actions), max-scattered onto the planes, so its cost follows the
+            occupied voxels (at most N) rather than the X * Y * Z grid. No volume: it
+            serves the ``triplane`` and ``xy`` modes.
     """
 
     resolution: tuple[int, int, int] = (128, 128, 32)
@@ -63,8 +69,13 @@ class WorldModelConfig:
     decoder_hidden: int = 64
     decoder_layers: int = 3
     occupancy_skip: bool = True
+    encoder: str = "volume-conv"
 
     def __post_init__(self) -> None:
+        if self.encoder not in ENCODERS:
+            raise ValueError(f"encoder must be one of {ENCODERS}, got {self.encoder!r}")
+        if self.encoder == "point-scatter" and self.feature_mode == "volume":
+            raise ValueError("the point-scatter encoder builds planes, not a volume: use feature_mode triplane or xy")
         if self.feature_mode not in FEATURE_MODES:
             raise ValueError(f"feature_mode must be one of {FEATURE_MODES}, got {self.feature_mode!r}")
         if self.plane_pooling not in PLANE_POOLINGS:
@@ -132,10 +143,13 @@ class TriplaneWorldModel(nn.Module):
         super().__init__()
         self.config = config
         c = config.channels
-        self.encoder = nn.Sequential(
-            nn.Conv3d(1, c, 3, padding=1), nn.GroupNorm(4, c), nn.SiLU(),
-            nn.Conv3d(c, c, 3, padding=1), nn.GroupNorm(4, c), nn.SiLU(),
-        )
+        if config.encoder == "point-scatter":
+            self.encoder = nn.Sequential(nn.Linear(3, c), nn.SiLU(), nn.Linear(c, c))
+        else:
+            self.encoder = nn.Sequential(
+                nn.Conv3d(1, c, 3, padding=1), nn.GroupNorm(4, c), nn.SiLU(),
+                nn.Conv3d(c, c, 3, padding=1), nn.GroupNorm(4, c), nn.SiLU(),
+            )
         self.film = nn.Sequential(
             nn.Linear(config.action_history * config.action_dim, 128), nn.SiLU(), nn.Linear(128, 2 * c)
         )
@@ -161,16 +175,40 @@ class TriplaneWorldModel(nn.Module):
         """
         grid = occupancy.float().unsqueeze(1)
         skip = [grid] if self.config.occupancy_skip else []
-        volume = self.encoder(grid)
         gamma, beta = self.film(actions.flatten(1)).chunk(2, dim=-1)
-        volume = volume * (1 + gamma[:, :, None, None, None]) + beta[:, :, None, None, None]
         mode = self.config.feature_mode
-        if mode == "volume":
-            return [self.refine[0](volume), *skip]
-        planes = [self._pool(volume, 4)]  # xy: (B, C, X, Y)
-        if mode == "triplane":
-            planes += [self._pool(volume, 3), self._pool(volume, 2)]  # xz: (B, C, X, Z), yz: (B, C, Y, Z)
+        if self.config.encoder == "point-scatter":
+            planes = self._scatter_planes(occupancy, gamma, beta)
+        else:
+            volume = self.encoder(grid)
+            volume = volume * (1 + gamma[:, :, None, None, None]) + beta[:, :, None, None, None]
+            if mode == "volume":
+                return [self.refine[0](volume), *skip]
+            planes = [self._pool(volume, 4)]  # xy: (B, C, X, Y)
+            if mode == "triplane":
+                planes += [self._pool(volume, 3), self._pool(volume, 2)]  # xz: (B, C, X, Z), yz: (B, C, Y, Z)
         return [*(refine(plane) for refine, plane in zip(self.refine, planes, strict=True)), *skip]
+
+    def _scatter_planes(self, occupancy: torch.Tensor, gamma: torch.Tensor, beta: torch.Tensor) -> list[torch.Tensor]:
+        """Planes from the occupied voxels: per-voxel features (MLP of the voxel centre in
+        [-1, 1], FiLM from the actions, ReLU so that an empty cell's 0 is the floor), max over
+        the voxels that share a plane cell. Equal to max-pooling a volume that holds those
+        features at the occupied voxels and 0 elsewhere, without building the volume."""
+        batch, (nx, ny, nz) = occupancy.shape[0], self.config.resolution
+        b, x, y, z = occupancy.nonzero(as_tuple=True)
+        resolution = torch.tensor([nx, ny, nz], device=occupancy.device, dtype=torch.float32)
+        centres = (torch.stack([x, y, z], dim=-1).float() + 0.5) / resolution * 2.0 - 1.0
+        features = torch.relu(self.encoder(centres) * (1 + gamma[b]) + beta[b])  # (M, C)
+        layouts = [((x, y), (nx, ny))]
+        if self.config.feature_mode == "triplane":
+            layouts += [((x, z), (nx, nz)), ((y, z), (ny, nz))]
+        channels, planes = features.shape[1], []
+        for (u, v), (nu, nv) in layouts:
+            cell = (b * nu + u) * nv + v
+            plane = features.new_zeros(batch * nu * nv, channels)
+            plane = plane.scatter_reduce(0, cell[:, None].expand(-1, channels), features, reduce="amax")
+            planes.append(plane.reshape(batch, nu, nv, channels).permute(0, 3, 1, 2))
+        return planes
 
     def _pool(self, volume: torch.Tensor, dim: int) -> torch.Tensor:
         if self.config.plane_pooling == "max":
