@@ -62,6 +62,7 @@ CHANGES: dict[str, Callable[[TrainPolicyConfig], TrainPolicyConfig]] = {
     "points-256": _policy(num_points=256),
     "batch-32": _training(batch_size=32),
     "steps-2000": _training(steps=2000),
+    "steps-8000": _training(steps=8000),
     "trim-after-success-10": _training(trim_after_success=10),
     "diffusion-epsilon": _policy(diffusion_prediction="epsilon"),  # for --algo dp3
     "cfg-amplify": _policy(cfg_guidance="amplify"),  # for the CFG variants
