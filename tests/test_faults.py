@@ -175,3 +175,37 @@ def test_a_diverging_policy_run_stops_and_keeps_its_last_finite_checkpoint(reach
     payload = load_checkpoint(out / "policy.pt", "policy")
     assert payload["step"] == 2
     assert all(torch.isfinite(value).all() for value in payload["model"].values() if value.is_floating_point())
+
+
+def test_a_killed_policy_training_resumes_to_the_uninterrupted_result(reach_data, tmp_path):
+    """kill -9 after the first checkpoint, rerun the same command: the final weights are those
+    of a run that was never interrupted (generator, optimizer, scheduler and EMA all resume)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from d2a_agents.checkpoint import load_checkpoint
+
+    def command(out: Path) -> list[str]:
+        return [sys.executable, "-m", "d2a.cli", "train-policy", "--algo", "mp1", "--data", reach_data,
+                "--out", str(out), "--steps", "400", "--batch-size", "8", "--num-points", "16",
+                "--eval-episodes", "0", "--threads", "1"]
+
+    killed = tmp_path / "killed"
+    process = subprocess.Popen(command(killed), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and not (killed / "policy.pt").exists() and process.poll() is None:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    interrupted_at = load_checkpoint(killed / "policy.pt", "policy")["step"]
+    assert 0 < interrupted_at < 400, "the kill should land between the first checkpoint and the end"
+    subprocess.run(command(killed), check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(command(tmp_path / "straight"), check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    resumed = load_checkpoint(killed / "policy.pt", "policy")
+    straight = load_checkpoint(tmp_path / "straight" / "policy.pt", "policy")
+    assert resumed["step"] == straight["step"] == 400
+    for key in ("model", "ema"):
+        for name, value in straight[key].items():
+            assert torch.equal(resumed[key][name], value), f"{key}.{name}"
