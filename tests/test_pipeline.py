@@ -61,6 +61,8 @@ def test_collect_train_evaluate_without_imagination(algo, normalizers, reach_dat
     assert len(result.successes) == 1 and len(result.returns) == 1
     with pytest.raises(ValueError, match="trained on"):
         evaluate_checkpoint(tmp_path / CHECKPOINT_NAME, "hammer", 1, seed=0)
+    with pytest.raises(ValueError, match="trained on"):  # a run directory names its policy.pt
+        evaluate_checkpoint(tmp_path, "hammer", 1, seed=0)
 
 
 def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_model, tmp_path):
