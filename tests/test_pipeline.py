@@ -175,3 +175,14 @@ def test_bad_world_model_settings_are_refused():
     for field, value in bad:
         with pytest.raises(ValueError, match=field):
             TrainWorldModelConfig(data="d", out="o.pt", **{field: value})
+
+
+def test_a_multi_task_run_evaluates_every_task(tmp_path):
+    from collectors.collect import CollectConfig, collect
+    from tests.conftest import SMALL_ENV_KWARGS
+
+    data = tmp_path / "two"
+    collect(CollectConfig(tasks=("reach", "button-press"), out=str(data), episodes=1, env_kwargs=SMALL_ENV_KWARGS,
+                          progress=False))
+    _, history = train_policy(policy_config("mp1", str(data), tmp_path / "run"))
+    assert sorted((point.step, point.task) for point in history) == [(3, "button-press"), (3, "reach")]

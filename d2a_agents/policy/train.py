@@ -124,9 +124,12 @@ class TrainPolicyConfig:
 
 @dataclass
 class EvaluationPoint:
+    """Success of one task's evaluation at one training step (a multi-task run has one per task)."""
+
     step: int
     success_rate: float
     episodes: int
+    task: str = ""
 
 
 def _cosine_with_warmup(warmup: int, total: int):
@@ -364,11 +367,11 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     def evaluate_now(step: int) -> None:
         nonlocal evaluation_seconds
         started_evaluation = time.perf_counter()
-        task = static["tasks"][0]
-        result = evaluate_checkpoint(path, task, config.eval_episodes, seed=10_000, workers=config.eval_workers,
-                                     progress=False, end_on_success=config.eval_end_on_success)
-        history.append(EvaluationPoint(step, result.success_rate, result.episodes))
-        bar.write(f"step {step}: {task} success {result.success_rate:.0%} over {result.episodes} episodes")
+        for task in static["tasks"]:
+            result = evaluate_checkpoint(path, task, config.eval_episodes, seed=10_000, workers=config.eval_workers,
+                                         progress=False, end_on_success=config.eval_end_on_success)
+            history.append(EvaluationPoint(step, result.success_rate, result.episodes, task))
+            bar.write(f"step {step}: {task} success {result.success_rate:.0%} over {result.episodes} episodes")
         evaluation_seconds += time.perf_counter() - started_evaluation
 
     bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc=f"{config.policy.algo} policy",
