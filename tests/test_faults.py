@@ -177,7 +177,16 @@ def test_a_diverging_policy_run_stops_and_keeps_its_last_finite_checkpoint(reach
     assert all(torch.isfinite(value).all() for value in payload["model"].values() if value.is_floating_point())
 
 
-def test_a_killed_policy_training_resumes_to_the_uninterrupted_result(reach_data, tmp_path):
+KILLED_RUNS = {  # command, checkpoint inside the output, checkpoint kind, weights compared, total steps
+    "policy": (["train-policy", "--algo", "mp1", "--steps", "400", "--batch-size", "8", "--num-points", "16",
+                "--eval-episodes", "0"], "policy.pt", "policy", ("model", "ema"), 400),
+    "world model": (["train-wm", "--steps", "200", "--batch-size", "2", "--queries", "256", "--validate-every", "200",
+                     "--resolution", "16", "16", "8"], "wm.pt", "world_model", ("model",), 200),
+}
+
+
+@pytest.mark.parametrize("trainer", sorted(KILLED_RUNS))
+def test_a_killed_training_resumes_to_the_uninterrupted_result(reach_data, tmp_path, trainer):
     """kill -9 after the first checkpoint, rerun the same command: the final weights are those
     of a run that was never interrupted (generator, optimizer, scheduler and EMA all resume)."""
     import signal
@@ -187,25 +196,26 @@ def test_a_killed_policy_training_resumes_to_the_uninterrupted_result(reach_data
 
     from d2a_agents.checkpoint import load_checkpoint
 
+    arguments, file, kind, weights, steps = KILLED_RUNS[trainer]
+
     def command(out: Path) -> list[str]:
-        return [sys.executable, "-m", "d2a.cli", "train-policy", "--algo", "mp1", "--data", reach_data,
-                "--out", str(out), "--steps", "400", "--batch-size", "8", "--num-points", "16",
-                "--eval-episodes", "0", "--threads", "1"]
+        out = out / file if kind == "world_model" else out
+        return [sys.executable, "-m", "d2a.cli", *arguments, "--data", reach_data, "--out", str(out), "--threads", "1"]
 
     killed = tmp_path / "killed"
     process = subprocess.Popen(command(killed), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
-    while time.time() < deadline and not (killed / "policy.pt").exists() and process.poll() is None:
+    while time.time() < deadline and not (killed / file).exists() and process.poll() is None:
         time.sleep(0.05)
     process.send_signal(signal.SIGKILL)
     process.wait()
-    interrupted_at = load_checkpoint(killed / "policy.pt", "policy")["step"]
-    assert 0 < interrupted_at < 400, "the kill should land between the first checkpoint and the end"
+    interrupted_at = load_checkpoint(killed / file, kind)["step"]
+    assert 0 < interrupted_at < steps, "the kill should land between the first checkpoint and the end"
     subprocess.run(command(killed), check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     subprocess.run(command(tmp_path / "straight"), check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    resumed = load_checkpoint(killed / "policy.pt", "policy")
-    straight = load_checkpoint(tmp_path / "straight" / "policy.pt", "policy")
-    assert resumed["step"] == straight["step"] == 400
-    for key in ("model", "ema"):
+    resumed = load_checkpoint(killed / file, kind)
+    straight = load_checkpoint(tmp_path / "straight" / file, kind)
+    assert resumed["step"] == straight["step"] == steps
+    for key in weights:
         for name, value in straight[key].items():
             assert torch.equal(resumed[key][name], value), f"{key}.{name}"
