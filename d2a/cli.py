@@ -157,6 +157,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
+    env_kwargs = _env_kwargs(args)
     if args.policy == "expert":
         import functools
 
@@ -164,13 +165,13 @@ def cmd_eval(args: argparse.Namespace) -> None:
         from collectors.experts import ScriptedExpert
 
         result = evaluate(functools.partial(ScriptedExpert, args.task), args.task, args.episodes, args.seed,
-                          env_kwargs=_env_kwargs(args), workers=args.workers, end_on_success=args.end_on_success)
+                          env_kwargs=env_kwargs, workers=args.workers, end_on_success=args.end_on_success)
     else:
         from d2a_agents.policy.train import evaluate_checkpoint
 
-        if _env_kwargs(args):
+        if env_kwargs:
             raise ValueError(f"{args.policy} is evaluated in the env it was trained with; "
-                             f"the env options ({', '.join(_env_kwargs(args))}) apply to --policy expert only")
+                             f"the env options ({', '.join(env_kwargs)}) apply to --policy expert only")
         result = evaluate_checkpoint(args.policy, args.task, args.episodes, args.seed, workers=args.workers,
                                      end_on_success=args.end_on_success)
     print(result.summary())

@@ -255,7 +255,6 @@ def evaluate_checkpoint(
     point-cloud settings, its world model when it imagines); a task it was not trained on,
     or a checkpoint it cannot read, is refused before any worker starts. ``end_on_success``:
     see :func:`~collectors.evaluation.evaluate`."""
-    path = policy_file(path)
     _, payload = load_policy(path)
     name = get_task(task).name
     if name not in payload["env_kwargs"]:
