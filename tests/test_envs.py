@@ -122,10 +122,13 @@ def test_dict_space_contains_every_observation(task):
     assert set(observation) == {"point_cloud", "agent_pos", "state"}
     assert env.observation_space.contains(observation)
     assert info["success"] is False
+    schema = {key: type(value) for key, value in info.items()}
     for _ in range(3):
         observation, reward, terminated, truncated, info = env.step(env.action_space.sample())
         assert env.observation_space.contains(observation)
         assert isinstance(info["success"], bool)
+        # one info schema at reset and at every step: vectorised envs batch it without masks
+        assert {key: type(value) for key, value in info.items()} == schema
 
 
 def test_state_can_be_left_out():

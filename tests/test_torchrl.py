@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 from gymnasium.wrappers import TimeLimit
-from torchrl.envs import GymEnv, GymWrapper, TransformedEnv, check_env_specs
+from torchrl.envs import GymEnv, GymWrapper, ParallelEnv, TransformedEnv, check_env_specs
 
+from collectors.envs import make_torchrl_env
 from d2a_envs import SUITE_DEFAULTS, PointCloudConfig, PointCloudSensor  # registers the D2A-* ids
 from d2a_envs.suites.metaworld import MetaWorldEnv
 from d2a_envs.torchrl_transforms import PointCloudTransform, mujoco_model_data
@@ -39,6 +42,18 @@ def test_registered_ids_pass_check_env_specs(env_id: str, kwargs: dict) -> None:
     env = GymEnv(env_id, **kwargs)
     assert env.observation_spec["point_cloud"].shape == (kwargs["num_points"], 3)
     check_env_specs(env, seed=0)
+    env.close()
+
+
+def test_parallel_env_runs_d2a_envs_in_worker_processes() -> None:
+    # TorchRL's way to run copies of an env in processes: each worker builds its own env
+    env = ParallelEnv(2, partial(make_torchrl_env, "reach", {"num_points": 32, "image_size": 32}))
+    check_env_specs(env, seed=0)
+    rollout = env.rollout(3)
+    assert rollout["next", "point_cloud"].shape == (2, 3, 32, 3)
+    assert rollout["next", "success"].dtype == torch.bool
+    seeds = rollout["next", "episode_seed"]
+    assert (seeds == seeds[:, :1]).all() and seeds[0, 0] != seeds[1, 0]  # one seed per worker's episode
     env.close()
 
 

@@ -13,6 +13,18 @@ from d2a_envs.suites.base import SuiteEnv
 # Meta-World raises if stepped past its own horizon; episode length is left to TimeLimit.
 _UNLIMITED_PATH_LENGTH = 2**62
 
+# The per-step measurements every Meta-World v3 task reports beside ``success``. Meta-World
+# returns them only from ``step``, with types that vary by task (int, bool or float); here they
+# are floats in every info, reset included (0.0 there), so vectorised envs see one schema.
+METAWORLD_INFO_KEYS = (
+    "near_object",
+    "grasp_success",
+    "grasp_reward",
+    "in_place_reward",
+    "obj_to_target",
+    "unscaled_reward",
+)
+
 
 class MetaWorldEnv(SuiteEnv):
     """One Meta-World v3 task (e.g. ``hammer-v3``) with Gymnasium seeding semantics.
@@ -23,7 +35,8 @@ class MetaWorldEnv(SuiteEnv):
     (the scripted experts need it).
 
     Observation: ``agent_pos`` = end-effector xyz and gripper opening (4,), ``state`` = the
-    39-d Meta-World observation.
+    39-d Meta-World observation. ``info`` holds ``success`` and the floats named in
+    :data:`METAWORLD_INFO_KEYS`, at reset as at every step.
     """
 
     def __init__(self, task: str, state_obs: bool = True) -> None:
@@ -55,4 +68,8 @@ class MetaWorldEnv(SuiteEnv):
         # Meta-World moves the goal site after its last forward pass: recompute the derived
         # positions so the first frame draws the marker where the goal is.
         mujoco.mj_kinematics(self._sim.model, self._sim.data)
-        return state, dict(info)
+        return state, {**info, **dict.fromkeys(METAWORLD_INFO_KEYS, 0.0)}
+
+    def _step_simulator(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
+        state, reward, terminated, info = super()._step_simulator(action)
+        return state, reward, terminated, {**info, **{key: float(info[key]) for key in METAWORLD_INFO_KEYS}}
