@@ -209,14 +209,21 @@ def cmd_bench_ablate(args: argparse.Namespace) -> None:
 
 
 def cmd_bench_wm(args: argparse.Namespace) -> None:
-    from benchmarks.world_model import WorldModelBenchConfig, run
+    from benchmarks.world_model import BENCH_MODELS, BenchModel, WorldModelBenchConfig, run
 
+    main, baseline = BENCH_MODELS
+    model = _replace_given(main.model, plane_pooling=args.plane_pooling, encoder=args.encoder,
+                           feature_mode=args.mode, resolution=tuple(args.resolution) if args.resolution else None)
+    label = f"{'x'.join(map(str, model.resolution))} {model.encoder}" + (
+        "" if model.feature_mode == "triplane" else f" {model.feature_mode}")
+    models = (BenchModel(label, model, args.steps or main.steps),)
+    if args.baseline_steps != 0:
+        models += (dataclasses.replace(baseline, steps=args.baseline_steps or baseline.steps),)
     base = WorldModelBenchConfig()
-    model = _replace_given(base.model, plane_pooling=args.plane_pooling,
-                           resolution=tuple(args.resolution) if args.resolution else None)
-    run(_replace_given(base, tasks=tuple(args.task) if args.task else None,
-                       modes=tuple(args.mode) if args.mode else None, steps=args.steps, workdir=args.workdir,
-                       model=model))
+    env_kwargs = {**base.env_kwargs, **{key: value for key, value in (
+        ("num_points", args.num_points), ("image_size", args.image_size), ("backend", args.backend)) if value}}
+    run(_replace_given(base, tasks=tuple(args.task) if args.task else None, models=models, env_kwargs=env_kwargs,
+                       horizons=tuple(args.horizon) if args.horizon else None, workdir=args.workdir))
 
 
 def cmd_bench_success(args: argparse.Namespace) -> None:
@@ -400,11 +407,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench_wm = bench.add_parser("wm", help="world model IoU vs ablations and persistence (Table II)")
     bench_wm.add_argument("--task", action="append", default=None, help="default: hammer assembly push basketball")
-    bench_wm.add_argument("--steps", type=POSITIVE, default=300)
-    bench_wm.add_argument("--resolution", type=POSITIVE, nargs=3, default=None, metavar=("X", "Y", "Z"))
-    bench_wm.add_argument("--mode", action="append", choices=("triplane", "xy", "volume"), default=None,
-                          help="default: triplane xy volume")
+    bench_wm.add_argument("--horizon", type=POSITIVE, action="append", default=None, help="H; repeat (default 4)")
+    bench_wm.add_argument("--steps", type=POSITIVE, default=None, help="the main model's steps (default 1500)")
+    bench_wm.add_argument("--baseline-steps", type=NON_NEGATIVE, default=None,
+                          help="steps of the 32x32x8 volume-conv row (default 300; 0: leave it out)")
+    bench_wm.add_argument("--resolution", type=POSITIVE, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                          help="the main model's grid (default 128 128 32)")
+    bench_wm.add_argument("--encoder", choices=("point-scatter", "volume-conv"), default=None,
+                          help="the main model's encoder (default point-scatter)")
+    bench_wm.add_argument("--mode", choices=("triplane", "xy", "volume"), default=None,
+                          help="the main model's features (default triplane; volume needs --encoder volume-conv)")
     bench_wm.add_argument("--plane-pooling", choices=("mean", "max"), default=None)
+    bench_wm.add_argument("--num-points", type=POSITIVE, default=None, help="points per collected cloud (default 4096)")
+    bench_wm.add_argument("--image-size", type=POSITIVE, default=None, help="depth image size (default 256)")
+    bench_wm.add_argument("--backend", choices=("raycast", "render"), default=None, help="depth backend")
     bench_wm.add_argument("--workdir", default="outputs/bench_wm")
     bench_wm.set_defaults(func=cmd_bench_wm)
 

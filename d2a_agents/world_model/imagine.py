@@ -55,6 +55,25 @@ def predict_grid(
     return predict_logits(model, current, actions, chunk) > logit(threshold)
 
 
+def occupancy_to_points(
+    grid: VoxelGrid, occupied: torch.Tensor, cloud: torch.Tensor, current: torch.Tensor, keep_observed_points: bool
+) -> torch.Tensor:
+    """World-frame points (M, 3) of the occupied voxel ``indices`` (K, 3), before resampling.
+
+    With ``keep_observed_points``: the points of ``cloud`` whose voxel stays occupied, then the
+    centres of the voxels not occupied in ``current`` (the (X, Y, Z) grid of ``cloud``);
+    otherwise every occupied voxel's centre.
+    """
+    if not keep_observed_points:
+        return grid.centres(occupied)
+    imagined = torch.zeros_like(current)
+    imagined[tuple(occupied.T)] = True
+    indices, inside = grid.indices(cloud)
+    kept = cloud[inside & imagined[tuple(indices.T)]]
+    new = occupied[~current[tuple(occupied.T)]]
+    return torch.cat([kept, grid.centres(new)])
+
+
 class Imaginer:
     """Imagine the cloud H steps ahead from the current cloud and the past actions.
 
@@ -131,17 +150,5 @@ class Imaginer:
         if len(occupied) == 0:
             keep = min(int(current.sum()), len(candidates))
             occupied = candidates[logits.topk(keep).indices]
-        if self.keep_observed_points:
-            points = self._observed_then_new(cloud, current[0], occupied)
-        else:
-            points = self.grid.centres(occupied)
+        points = occupancy_to_points(self.grid, occupied, cloud, current[0], self.keep_observed_points)
         return sample_to_size(points.numpy(), self.num_points, self.rng).astype(np.float32)
-
-    def _observed_then_new(self, cloud: torch.Tensor, current: torch.Tensor, occupied: torch.Tensor) -> torch.Tensor:
-        """Observed points inside imagined-occupied voxels, then centres of newly filled voxels."""
-        imagined = torch.zeros_like(current)
-        imagined[tuple(occupied.T)] = True
-        indices, inside = self.grid.indices(cloud)
-        kept = cloud[inside & imagined[tuple(indices.T)]]
-        new = occupied[~current[tuple(occupied.T)]]
-        return torch.cat([kept, self.grid.centres(new)])
