@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 import benchmarks.success
+import benchmarks.world_model
 import d2a.demo
 import d2a_agents.policy.train
 import d2a_agents.world_model.train
@@ -26,6 +27,7 @@ def captured(monkeypatch) -> dict[str, object]:
     monkeypatch.setattr(d2a_agents.policy.train, "train_policy", train_policy)
     monkeypatch.setattr(d2a_agents.world_model.train, "train_world_model", train_policy)
     monkeypatch.setattr(benchmarks.success, "run", run)
+    monkeypatch.setattr(benchmarks.world_model, "run", run)
     monkeypatch.setattr(d2a.demo, "run_demo", run)
     return seen
 
@@ -54,6 +56,22 @@ def test_train_wm_device_and_threads(captured):
     assert (captured["config"].device, captured["config"].threads) == ("cuda", 2)
     main(["train-wm", "--data", "d", "--out", "o.pt"])
     assert (captured["config"].device, captured["config"].threads) == ("cpu", 0)
+
+
+def test_bench_wm_sets_the_main_model_the_baseline_row_and_the_collection(captured):
+    main(["bench", "wm", "--task", "push", "--horizon", "1", "--horizon", "8", "--steps", "9", "--backend", "render"])
+    config = captured["config"]
+    assert config.tasks == ("push",) and config.horizons == (1, 8)
+    main_model, baseline = config.models
+    assert (main_model.model.resolution, main_model.model.encoder, main_model.steps) == ((128, 128, 32),
+                                                                                         "point-scatter", 9)
+    assert (baseline.model.resolution, baseline.model.encoder, baseline.steps) == ((32, 32, 8), "volume-conv", 300)
+    assert config.env_kwargs == {"num_points": 4096, "image_size": 256, "backend": "render"}
+    main(["bench", "wm", "--baseline-steps", "0", "--resolution", "64", "64", "16", "--encoder", "volume-conv",
+          "--mode", "volume", "--num-points", "1024"])
+    config = captured["config"]
+    assert [model.label for model in config.models] == ["64x64x16 volume-conv volume"]
+    assert config.env_kwargs == {"num_points": 1024, "image_size": 256}
 
 
 def test_the_cli_offers_every_policy_variant():
