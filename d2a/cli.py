@@ -139,7 +139,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
     from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 
     preset = _replace_given(POLICY_PRESETS[args.preset], steps=args.steps, batch_size=args.batch_size,
-                            learning_rate=args.lr)
+                            learning_rate=args.lr, trim_after_success=args.trim_after_success)
     policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
                             n_action_steps=args.n_action_steps, num_points=args.num_points,
                             cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
@@ -147,7 +147,8 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
     config = TrainPolicyConfig(
         data=args.data, out=args.out, policy=policy, world_model=args.world_model, steps=preset.steps,
-        batch_size=preset.batch_size, learning_rate=preset.learning_rate, eval_every=args.eval_every,
+        batch_size=preset.batch_size, learning_rate=preset.learning_rate,
+        trim_after_success=preset.trim_after_success, eval_every=args.eval_every,
         eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
         holdout_episodes=args.holdout_episodes, device=args.device, threads=args.threads,
     )
@@ -350,6 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--cfg-scale", type=float, default=None, help="k of --cfg-guidance amplify (default 1)")
     train_policy.add_argument("--adaptive-power", type=float, default=None,
                               help="MeanFlow's adaptive loss power p (0: plain squared error; default: the preset's)")
+    train_policy.add_argument("--trim-after-success", type=int, default=None, metavar="K",
+                              help="keep K frames after each demonstration's first success (-1: all; "
+                                   "default: the preset's)")
     train_policy.add_argument("--holdout-episodes", type=NON_NEGATIVE, default=0,
                               help="hold out the last K episodes of each task for the perception check")
     train_policy.add_argument("--device", default="cpu", help="cpu or cuda (evaluation runs on the CPU)")

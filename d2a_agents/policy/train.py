@@ -64,6 +64,7 @@ class PolicyPreset:
     steps: int
     batch_size: int
     learning_rate: float
+    trim_after_success: int = -1  # frames kept after each demonstration's first success (-1: all)
 
 
 POLICY_PRESETS: dict[str, PolicyPreset] = {
@@ -95,7 +96,7 @@ class TrainPolicyConfig:
     holdout_episodes: int = 0  # the last k episodes of each task: never trained on, used by the perception check
     # Keep only this many frames after an episode's first success (-1: keep all). Scripted
     # experts succeed at steps 59-71 of 200 on Hammer and then hold still: 2/3 of the frames.
-    trim_after_success: int = -1
+    trim_after_success: int = POLICY_PRESETS["cpu"].trim_after_success
     reliance_windows: int = 512  # windows of the perception check
     eval_every: int = 0  # 0: only at the end
     eval_episodes: int = 20  # 0: no evaluation at all
