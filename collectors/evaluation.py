@@ -15,7 +15,6 @@ Reporting:
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -23,6 +22,7 @@ from functools import partial
 from typing import Any
 
 import torch
+from scipy.stats import binomtest
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.envs import EnvBase, InitTracker
@@ -31,9 +31,6 @@ from tqdm import tqdm
 
 import d2a_envs
 from collectors.envs import make_torchrl_env
-
-# Two-sided 95 % normal quantile, Phi^-1(0.975).
-Z_95 = 1.959963984540054
 
 
 @dataclass
@@ -299,23 +296,14 @@ def paper_protocol(evaluation_success_rates: Sequence[float], top_k: int = 5) ->
     return sum(best) / len(best)
 
 
-def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion: ``successes`` out of ``trials``.
-
-    centre = (p + z^2 / 2n) / (1 + z^2 / n),
-    half width = z / (1 + z^2 / n) * sqrt(p (1 - p) / n + z^2 / 4n^2).
-    """
+def wilson_interval(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion: ``successes`` out of ``trials`` (scipy's)."""
     if trials < 1:
         raise ValueError(f"trials must be positive, got {trials}")
     if not 0 <= successes <= trials:
         raise ValueError(f"successes must lie in [0, {trials}], got {successes}")
-    n, p, z2 = trials, successes / trials, z * z
-    denominator = 1 + z2 / n
-    centre = (p + z2 / (2 * n)) / denominator
-    half = z / denominator * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n))
-    low = 0.0 if successes == 0 else max(0.0, centre - half)
-    high = 1.0 if successes == trials else min(1.0, centre + half)
-    return low, high
+    interval = binomtest(successes, trials).proportion_ci(confidence_level=confidence, method="wilson")
+    return float(interval.low), float(interval.high)
 
 
 def honest_protocol(successes: Sequence[bool]) -> tuple[float, float, float]:
