@@ -17,8 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from collectors.atomic import atomic_write_text
 from collectors.evaluation import honest_protocol
-from d2a.atomic import atomic_write_text
 from d2a_agents.checkpoint import load_checkpoint
 from d2a_agents.policy.train import CHECKPOINT_NAME, TrainPolicyConfig, evaluate_checkpoint, train_policy
 

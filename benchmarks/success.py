@@ -26,10 +26,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from collectors.atomic import atomic_write_text
 from collectors.collect import CollectConfig, collect
 from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.storage import DemoDataset
-from d2a.atomic import atomic_write_text
 from d2a_agents.policy.agent import uses_imagination
 from d2a_agents.policy.train import (
     CHECKPOINT_NAME,

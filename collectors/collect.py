@@ -18,6 +18,7 @@ from torchrl.collectors import Collector
 from tqdm import tqdm
 
 import d2a_envs
+from collectors.atomic import exclusive_writer, holds_only_lock
 from collectors.envs import make_torchrl_env
 from collectors.experts import ScriptedExpert
 from collectors.storage import (
@@ -28,7 +29,6 @@ from collectors.storage import (
     episode_frames,
     refuse_foreign,
 )
-from d2a.atomic import exclusive_writer, holds_only_lock
 
 
 @dataclass(frozen=True)

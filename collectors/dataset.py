@@ -34,7 +34,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch.utils.data import Dataset
 
-from d2a.atomic import atomic_torch_save
+from collectors.atomic import atomic_torch_save
 
 RANGE_EPS = 1e-4  # dimensions whose data range is below this are treated as constant (DP3's range_eps)
 

@@ -28,7 +28,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 
-from d2a.atomic import atomic_write_text, holds_only_lock, is_lock_file
+from collectors.atomic import atomic_write_text, holds_only_lock, is_lock_file
 
 FORMAT = "d2a-demonstrations"
 # v2: clouds show the scene's visible sites (goal markers); v1 clouds did not.
@@ -169,7 +169,7 @@ class DemoDataset:
         """A new, empty data set with room for ``capacity`` steps.
 
         An existing non-empty directory is refused unless ``overwrite``; a writer lock held on
-        it (:func:`d2a.atomic.exclusive_writer`) survives the overwrite.
+        it (:func:`collectors.atomic.exclusive_writer`) survives the overwrite.
         """
         directory = Path(directory)
         if directory.exists() and not holds_only_lock(directory):

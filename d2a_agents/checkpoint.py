@@ -8,7 +8,7 @@ from typing import Any
 
 import torch
 
-from d2a.atomic import atomic_torch_save
+from collectors.atomic import atomic_torch_save
 
 FORMAT = "d2a-checkpoint"
 # v2: trained on clouds that show the goal markers (data-set format v2).

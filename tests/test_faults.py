@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import torch
 
+from collectors.atomic import LOCK_NAME, DirectoryBusyError, exclusive_writer, is_lock_file
 from collectors.storage import BUFFER_DIR, METADATA_FILE, DatasetError, DemoDataset
-from d2a.atomic import LOCK_NAME, DirectoryBusyError, exclusive_writer, is_lock_file
 from d2a.cli import main
 from tests.conftest import SMALL_ENV_KWARGS
 

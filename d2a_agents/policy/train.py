@@ -24,10 +24,10 @@ import torch
 from tensordict import TensorDict
 from tqdm import tqdm
 
+from collectors.atomic import exclusive_writer
 from collectors.dataset import DemoWindows, Normalizer, WindowConfig, episode_bounds
 from collectors.evaluation import EvaluationResult, evaluate
 from collectors.storage import DemoDataset
-from d2a.atomic import exclusive_writer
 from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint, load_for_resume, save_checkpoint
 from d2a_agents.policy.agent import (
     CPU_POLICY_PRESET,

@@ -17,8 +17,8 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from collectors.atomic import exclusive_writer
 from collectors.storage import DemoDataset
-from d2a.atomic import exclusive_writer
 from d2a_agents.checkpoint import load_for_resume, save_checkpoint
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import CHECKPOINT_KIND, logit, predict_grid, predict_logits
