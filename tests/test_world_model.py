@@ -394,7 +394,7 @@ def near_band_brute_force(occupancy: np.ndarray, distance: int) -> np.ndarray:
     return result
 
 
-@pytest.mark.parametrize("distance", [0, 1, 2])
+@pytest.mark.parametrize("distance", [0, 1, 2, 6])  # 6: beyond every axis of the grid
 def test_near_band_matches_brute_force_chebyshev(distance):
     rng = np.random.default_rng(distance)
     occupancy = rng.random((3, 7, 6, 5)) < 0.03
