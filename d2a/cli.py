@@ -302,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     train_wm.add_argument("--data", required=True, help="data set directory (d2a collect)")
     train_wm.add_argument("--out", required=True, help="checkpoint file; an existing one is resumed")
     train_wm.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
-                          help="cpu: 64x64x16 grid; paper: 128x128x32 (GPU work)")
+                          help="cpu: 128x128x32, point-scatter encoder; paper: 128x128x32, Conv3d encoder (GPU work)")
     train_wm.add_argument("--resolution", type=POSITIVE, nargs=3, default=None, metavar=("X", "Y", "Z"))
     train_wm.add_argument("--horizon", type=POSITIVE, default=None, help="H, steps imagined ahead")
     train_wm.add_argument("--history", type=POSITIVE, default=None, help="past actions conditioning the model")
