@@ -22,7 +22,7 @@ from collectors.collect import CollectConfig, collect
 from collectors.storage import DemoDataset
 from d2a_agents.world_model.evaluation import imagination_chamfer, imagination_latency
 from d2a_agents.world_model.train import TrainWorldModelConfig, split_episodes, train_world_model
-from d2a_agents.world_model.triplane import WorldModelConfig
+from d2a_agents.world_model.triplane import CPU_PRESET, WorldModelConfig
 
 PAPER_TRIPLANE_IOU = {"basketball": 92.8, "push": 95.7, "hammer": 94.7, "assembly": 91.9}
 
@@ -37,7 +37,7 @@ class BenchModel:
 
 
 BENCH_MODELS = (
-    BenchModel("128x128x32 point-scatter", WorldModelConfig(resolution=(128, 128, 32), encoder="point-scatter"), 1500),
+    BenchModel("128x128x32 point-scatter", CPU_PRESET, 1500),  # train-wm's cpu preset
     BenchModel("32x32x8 volume-conv", WorldModelConfig(resolution=(32, 32, 8)), 300),
 )
 
