@@ -125,10 +125,9 @@ def run_cell(config: SuccessBenchConfig, task: str, algo: str, seed: int, data: 
     run = Path(config.workdir) / "runs" / f"{task}_{algo}_s{seed}"
     started = time.perf_counter()
     preset = config.policy
-    _, history = train_policy(TrainPolicyConfig(
-        data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=algo),
-        world_model=str(world_model) if uses_imagination(algo) else None, steps=preset.steps,
-        batch_size=preset.batch_size, learning_rate=preset.learning_rate,
+    _, history = train_policy(TrainPolicyConfig.from_preset(
+        preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=algo),
+        world_model=str(world_model) if uses_imagination(algo) else None,
         eval_every=max(1, preset.steps // config.evaluations), eval_episodes=config.eval_episodes,
         eval_workers=config.workers, seed=seed,
     ))

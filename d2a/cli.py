@@ -145,10 +145,8 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                             cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
                             cfg_guidance=args.cfg_guidance, cfg_scale=args.cfg_scale,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
-    config = TrainPolicyConfig(
-        data=args.data, out=args.out, policy=policy, world_model=args.world_model, steps=preset.steps,
-        batch_size=preset.batch_size, learning_rate=preset.learning_rate,
-        trim_after_success=preset.trim_after_success, eval_every=args.eval_every,
+    config = TrainPolicyConfig.from_preset(
+        preset, data=args.data, out=args.out, policy=policy, world_model=args.world_model, eval_every=args.eval_every,
         eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
         holdout_episodes=args.holdout_episodes, device=args.device, threads=args.threads,
     )

@@ -58,9 +58,8 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict[str, float]:
     print("3/4 training the policy")
     preset = config.policy
     run = out / preset.policy.algo
-    train_policy(TrainPolicyConfig(
-        data=str(data), out=str(run), policy=preset.policy, world_model=str(world_model), steps=preset.steps,
-        batch_size=preset.batch_size, learning_rate=preset.learning_rate, eval_episodes=0, seed=config.seed,
+    train_policy(TrainPolicyConfig.from_preset(
+        preset, data=str(data), out=str(run), world_model=str(world_model), eval_episodes=0, seed=config.seed,
     ))
     print(f"4/4 evaluating on {config.eval_episodes} new layouts")
     result = evaluate_checkpoint(run / CHECKPOINT_NAME, config.task, config.eval_episodes, seed=100_000,

@@ -108,6 +108,13 @@ class TrainPolicyConfig:
     threads: int = 0  # torch threads for training; 0: leave torch's setting
     progress: bool = True
 
+    @classmethod
+    def from_preset(cls, preset: PolicyPreset, **fields: Any) -> TrainPolicyConfig:
+        """The preset's networks and budget (steps, batch, learning rate, trimming); ``fields`` set the rest."""
+        return cls(**{"policy": preset.policy, "steps": preset.steps, "batch_size": preset.batch_size,
+                      "learning_rate": preset.learning_rate, "trim_after_success": preset.trim_after_success,
+                      **fields})
+
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "checkpoint_every", "reliance_windows"):
             if getattr(self, name) < 1:
