@@ -39,9 +39,11 @@ def test_train_policy_defaults_to_the_cpu_preset_and_flags_override_it(captured)
     assert (config.policy.algo, config.policy.num_points, config.policy.network.hidden) == ("mp1", 64, 128)
     assert not config.policy.encoder.use_imagination  # the algo decides, whatever the preset said
     assert (config.device, config.threads, config.holdout_episodes) == ("cpu", 0, 0)
-    assert config.trim_after_success == -1
-    main(["train-policy", "--data", "d", "--out", "o", "--trim-after-success", "10"])
-    assert captured["config"].trim_after_success == 10
+    assert config.trim_after_success == 10
+    main(["train-policy", "--data", "d", "--out", "o", "--trim-after-success", "-1"])
+    assert captured["config"].trim_after_success == -1
+    main(["train-policy", "--data", "d", "--out", "o", "--preset", "paper"])
+    assert captured["config"].trim_after_success == -1  # the paper trains on every frame
 
 
 def test_train_policy_state_reference_device_threads_and_holdout(captured):

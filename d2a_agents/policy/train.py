@@ -72,7 +72,9 @@ POLICY_PRESETS: dict[str, PolicyPreset] = {
     # samples, about half of MP1's released budget) at 10x DP3's learning rate: 7 minutes on
     # one thread for mp1, 11 for d2a (its second cloud encoder; `d2a bench train`). The
     # ablations behind it are in docs/perception.md.
-    "cpu": PolicyPreset(CPU_POLICY_PRESET, steps=4000, batch_size=256, learning_rate=1e-3),
+    # Training stops 10 frames after each demonstration's first success: the expert holds still
+    # after it (1/3 to 2/3 of the frames), and those frames taught the policy to stop short.
+    "cpu": PolicyPreset(CPU_POLICY_PRESET, steps=4000, batch_size=256, learning_rate=1e-3, trim_after_success=10),
     # Section IV of the paper: 1024 points (Meta-World), batch 128, 3000 epochs of 2000
     # demonstration steps (~47k steps), DP3's learning rate.
     "paper": PolicyPreset(PolicyConfig(num_points=1024), steps=47_000, batch_size=128, learning_rate=1e-4),
