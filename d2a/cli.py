@@ -9,7 +9,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
-ALGOS = ("d2a", "d2a-no-cfg", "d2a-no-imagination", "mp1", "dp3", "mp1-state")
+ALGOS = ("d2a", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "mp1", "dp3", "mp1-state")
 
 
 def _parse_box(text: str | None) -> tuple[tuple[float, ...], tuple[float, ...]] | None:

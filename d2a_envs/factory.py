@@ -29,12 +29,15 @@ def make_env(
     show_sites: bool | None = None,
     state_obs: bool = True,
     world_model: str | None = None,
+    imagined_points: int | None = None,
 ) -> gym.Env:
     """A suite env with point-cloud observations; ``None`` arguments take the suite default.
 
     Prefer ``gym.make("D2A-MetaWorld-Hammer-v0", **kwargs)``, which adds the 200-step time
     limit; the keyword arguments are the same. ``world_model`` (a checkpoint of ``d2a train-wm``)
-    adds ``imagined_point_cloud`` through :class:`~d2a_envs.imagination.ImaginationWrapper`.
+    adds ``imagined_point_cloud`` through :class:`~d2a_envs.imagination.ImaginationWrapper`, of
+    ``imagined_points`` points (default: ``num_points``; a policy that reads 64 points asks for 64,
+    which spares a farthest-point pass over thousands of points at every step).
     """
     if suite not in _SUITE_ENVS:
         raise ValueError(f"unknown suite {suite!r}; choose one of {sorted(_SUITE_ENVS)}")
@@ -43,10 +46,12 @@ def make_env(
         crop_box=crop_box, backend=backend, with_rgb=with_rgb, show_sites=show_sites,
     )
     env = PointCloudObservation(_SUITE_ENVS[suite](task, state_obs=state_obs), config)
+    if imagined_points is not None and world_model is None:
+        raise ValueError("imagined_points needs a world_model")
     if world_model is not None:
         from d2a_envs.imagination import ImaginationWrapper
         from d2a_envs.tasks import TASKS
 
         name = next((spec.name for spec in TASKS if spec.suite == suite and spec.task == task), None)
-        env = ImaginationWrapper(env, world_model, task=name)
+        env = ImaginationWrapper(env, world_model, task=name, num_points=imagined_points)
     return env

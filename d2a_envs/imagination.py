@@ -101,7 +101,7 @@ def _point_cloud_wrapper(env: gym.Env) -> PointCloudObservation | None:
 
 
 class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
-    """Add ``imagined_point_cloud`` (N x 3 float32, N = the env's point count) to a D2A env.
+    """Add ``imagined_point_cloud`` (N x 3 float32, N = the env's point count unless given) to a D2A env.
 
     The env's observation must be a ``Dict`` with ``point_cloud`` (any ``D2A-*`` env, or a
     :class:`~d2a_envs.wrappers.PointCloudObservation`). The world model must have been
@@ -118,6 +118,8 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         world_model: an :class:`~d2a_agents.world_model.imagine.Imaginer` or a checkpoint
             path written by ``d2a train-wm``.
         seed: seed of the fill generator until a seeded reset.
+        task: the env's task, checked against the tasks the world model was trained on.
+        num_points: points of the imagined cloud; default: those of the env's cloud.
 
     Example:
         >>> env = gym.make("D2A-MetaWorld-Hammer-v0", world_model="runs/hammer/wm.pt")
@@ -128,8 +130,10 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def __init__(
         self, env: gym.Env, world_model: Imaginer | str | os.PathLike, seed: int = 0, task: str | None = None,
+        num_points: int | None = None,
     ) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, world_model=world_model, seed=seed, task=task)
+        gym.utils.RecordConstructorArgs.__init__(self, world_model=world_model, seed=seed, task=task,
+                                                 num_points=num_points)
         gym.Wrapper.__init__(self, env)
         space = env.observation_space
         if not isinstance(space, spaces.Dict) or "point_cloud" not in space.spaces:
@@ -142,7 +146,9 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
             crop_box = maker.config.crop_box
         else:  # a cloud made elsewhere: its space's bounds are the box
             crop_box = CropBox(tuple(cloud_space.low[0, :3]), tuple(cloud_space.high[0, :3]))
-        num_points = int(cloud_space.shape[0])
+        num_points = int(cloud_space.shape[0] if num_points is None else num_points)
+        if num_points < 1:
+            raise ValueError(f"the imagined cloud needs at least 1 point, not {num_points}")
         self.imaginer = load_imaginer(world_model, num_points, seed)
         check_world_model(self.imaginer, crop_box, env.action_space.shape[0], _describe(world_model))
         if task is not None and self.imaginer.tasks and task not in self.imaginer.tasks:

@@ -81,6 +81,18 @@ def test_gym_make_with_world_model_gives_imagined_clouds_in_the_space(checkpoint
     env.close()
 
 
+def test_the_imagined_cloud_can_be_smaller_than_the_env_cloud(checkpoint: Path) -> None:
+    """A policy reading 16 points asks for 16 imagined points; the current cloud keeps its size."""
+    env = gym.make(ENV_ID, world_model=str(checkpoint), imagined_points=16, **ENV_KWARGS)
+    assert env.observation_space[IMAGINED_KEY].shape == (16, 3)
+    observation, _ = env.reset(seed=0)
+    assert observation[IMAGINED_KEY].shape == (16, 3) and observation["point_cloud"].shape[0] == NUM_POINTS
+    assert env.observation_space.contains(observation)
+    env.close()
+    with pytest.raises(ValueError, match="needs a world_model"):
+        gym.make(ENV_ID, imagined_points=16, **ENV_KWARGS)
+
+
 def test_action_history_is_reset_and_holds_the_last_k_actions_in_order(checkpoint: Path) -> None:
     imaginer = Imaginer.from_checkpoint(checkpoint)  # an Imaginer works as well as a path
     env = ImaginationWrapper(make_env("metaworld", "hammer-v3", **ENV_KWARGS), imaginer, seed=0)

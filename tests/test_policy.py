@@ -30,6 +30,7 @@ def tiny_policy(algo: str, **changes) -> Policy:
     ("d2a", MeanFlow, True, True, ("point_cloud", "agent_pos", "imagined_point_cloud"), 1.0),
     ("d2a-no-cfg", MeanFlow, False, True, ("point_cloud", "agent_pos", "imagined_point_cloud"), 1.0),
     ("d2a-no-imagination", MeanFlow, True, False, ("point_cloud", "agent_pos"), 1.0),
+    ("d2a-present", MeanFlow, True, True, ("point_cloud", "agent_pos"), 1.0),  # 2nd encoder: the cloud again
     ("mp1", MeanFlow, False, False, ("point_cloud", "agent_pos"), 1.0),
     ("dp3", Diffusion, None, False, ("point_cloud", "agent_pos"), 1000.0),
     ("mp1-state", MeanFlow, False, False, ("state",), 1.0),
@@ -100,6 +101,17 @@ def test_clouds_are_normalized_per_axis_inside_the_policy():
     normalized = policy.normalize_observation(window)
     torch.testing.assert_close(normalized["point_cloud"], expected)
     torch.testing.assert_close(normalized["imagined_point_cloud"], expected + torch.tensor([1.0, 0.5, 4.0]))
+
+
+def test_the_present_control_feeds_the_current_cloud_to_its_second_encoder():
+    """d2a-present reads no imagined cloud from the env: its second encoder gets the current one."""
+    policy = tiny_policy("d2a-present")
+    cloud = torch.rand(1, 2, 16, 3)
+    window = {"point_cloud": cloud, "agent_pos": torch.zeros(1, 2, 4)}
+    normalized = policy.normalize_observation(window)
+    torch.testing.assert_close(normalized["imagined_point_cloud"], normalized["point_cloud"])
+    shown = policy.normalize_observation({**window, "imagined_point_cloud": cloud.flip(2) + 0.5})
+    assert not torch.allclose(shown["imagined_point_cloud"], shown["point_cloud"])  # an explicit copy wins
 
 
 def test_a_policy_without_its_normalizers_is_refused():

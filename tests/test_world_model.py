@@ -646,6 +646,9 @@ class KnownFuture(nn.Module):
         index = ((queries + 1) / 2 * resolution).floor().long()
         return torch.where(self.future[tuple(index.unbind(-1))], 10.0, -10.0)
 
+    def voxel_decoder(self, features: list[torch.Tensor]):
+        return lambda indices: torch.where(self.future[tuple(indices.T)], 10.0, -10.0)
+
 
 @pytest.mark.parametrize("keep_observed_points", [False, True])
 def test_imaginer_decodes_the_imagined_voxels_keeping_observed_points_if_asked(keep_observed_points):
@@ -664,6 +667,63 @@ def test_imaginer_decodes_the_imagined_voxels_keeping_observed_points_if_asked(k
     imagined = imaginer(torch.cat([in_a, in_b]), torch.zeros(1, 4))
     assert imagined.shape == (len(expected), 3)
     np.testing.assert_allclose(sorted(imagined.tolist()), sorted(expected), atol=1e-6)
+
+
+@pytest.mark.parametrize("mode, encoder, skip", [
+    ("triplane", "point-scatter", True), ("xy", "point-scatter", True), ("triplane", "volume-conv", False),
+    ("volume", "volume-conv", True),
+])
+def test_voxel_decoder_equals_the_generic_decoder_at_voxel_centres(mode, encoder, skip):
+    """The table decoder (first layer split per plane cell and axis) against decode(): bilinear
+    plane sampling, the full positional embedding and the whole MLP at every voxel centre, with
+    random weights large enough that every term matters."""
+    torch.manual_seed(0)
+    config = WorldModelConfig(resolution=(10, 8, 4), channels=8, feature_mode=mode, encoder=encoder,
+                              occupancy_skip=skip, pe_frequencies=3)
+    model = TriplaneWorldModel(config)
+    for parameter in model.parameters():
+        nn.init.normal_(parameter, std=0.3)
+    occupancy = torch.rand(1, *config.resolution) < 0.2
+    with torch.no_grad():
+        features = model.encode(occupancy, torch.randn(1, config.action_history, config.action_dim))
+        indices = torch.stack(torch.meshgrid(*[torch.arange(n) for n in config.resolution], indexing="ij"), -1)
+        indices = indices.reshape(-1, 3)[torch.randperm(10 * 8 * 4)]
+        expected = model.decode(features, normalized_centres(indices, config.resolution)[None])[0]
+        actual = model.voxel_decoder(features)(indices)
+    assert expected.abs().max() > 1.0
+    torch.testing.assert_close(actual, expected, atol=1e-4, rtol=1e-4)
+
+
+def test_voxel_decoder_refuses_a_batch():
+    model = TriplaneWorldModel(WorldModelConfig(resolution=(4, 4, 2), channels=4))
+    features = model.encode(torch.zeros(2, 4, 4, 2, dtype=torch.bool), torch.zeros(2, 4, 4))
+    with pytest.raises(ValueError, match="one scene"):
+        model.voxel_decoder(features)
+
+
+def _bar(x_voxels: range) -> torch.Tensor:
+    grid = torch.zeros(12, 3, 2, dtype=torch.bool)
+    grid[list(x_voxels), 1, 0] = True
+    return grid
+
+
+@pytest.mark.parametrize("future_x, band, grow, reached", [
+    (range(2, 7), 4, True, range(2, 7)),    # the bar grows 3 voxels: followed ring by ring
+    (range(2, 7), 4, False, range(2, 7)),   # the whole band finds it too
+    (range(2, 7), 2, True, range(2, 6)),    # but no farther than the band
+    (range(2, 7), 1, True, range(2, 5)),
+    (range(6, 8), 4, False, range(6, 8)),    # a jump over 2 empty voxels: only the whole band sees it
+    (range(6, 8), 4, True, range(0)),        # growing needs a path of filled voxels from the present
+])
+def test_imaginer_decodes_within_the_band_growing_from_what_the_model_fills(future_x, band, grow, reached):
+    """A 12-voxel row holds a bar at x = 2, 3 now; the stand-in model knows the future bar."""
+    grid = VoxelGrid(CropBox((0.0, 0.0, 0.0), (1.2, 0.3, 0.2)), (12, 3, 2))
+    current = _bar(range(2, 4))[None]
+    imaginer = Imaginer(KnownFuture(_bar(future_x)), grid, num_points=8, band=band, grow=grow)
+    indices, logits = imaginer.decoded_voxels(current, [])
+    occupied = sorted(indices[logits > 0][:, 0].tolist())
+    assert occupied == list(reached)
+    assert len(indices) == len({tuple(index) for index in indices.tolist()}), "a voxel decoded twice"
 
 
 @pytest.fixture(scope="module")

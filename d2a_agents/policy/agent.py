@@ -7,13 +7,16 @@ Variants (``--algo``), all on the same encoders, network, data and evaluation:
 | ``d2a`` | MeanFlow, 1 step | cloud + ``agent_pos`` | yes | yes |
 | ``d2a-no-cfg`` | MeanFlow, 1 step | cloud + ``agent_pos`` | yes | no |
 | ``d2a-no-imagination`` | MeanFlow, 1 step | cloud + ``agent_pos`` | no | yes |
+| ``d2a-present`` | MeanFlow, 1 step | cloud + ``agent_pos`` | the current cloud again | yes |
 | ``mp1`` | MeanFlow, 1 step | cloud + ``agent_pos`` | no | no |
 | ``dp3`` | diffusion, DDIM 10 steps | cloud + ``agent_pos`` | no | no |
 | ``mp1-state`` | MeanFlow, 1 step | the simulator's ``state`` | no | no |
 
 ``mp1-state`` is the perception reference: the same action expert fed privileged state
 (Meta-World's 39-d observation holds the object positions), i.e. what the expert does with
-perfect perception at the same budget.
+perfect perception at the same budget. ``d2a-present`` is the control of imagination: the
+second encoder reads the current cloud in place of the imagined one (no world model), so
+``d2a`` against it separates what the imagined future adds from what a second encoder adds.
 
 The policy owns its normalizers (min/max to [-1, 1]: actions, the low-dimensional
 observation, and the clouds per axis, the imagined cloud with the current cloud's map) and
@@ -47,15 +50,18 @@ class Variant:
     """What an ``--algo`` name stands for (the one place it is decoded)."""
 
     expert: str  # "meanflow" or "diffusion"
-    imagination: bool = False
+    # The second cloud encoder's input: "none" (no second encoder), "world-model" (the
+    # imagined cloud) or "present" (the current cloud again, the control of imagination).
+    imagination: str = "none"
     cfg: bool = False
     observation: str = "cloud"  # "cloud" (cloud + agent_pos) or "state" (privileged simulator state)
 
 
 VARIANTS: dict[str, Variant] = {
-    "d2a": Variant("meanflow", imagination=True, cfg=True),
-    "d2a-no-cfg": Variant("meanflow", imagination=True),
+    "d2a": Variant("meanflow", imagination="world-model", cfg=True),
+    "d2a-no-cfg": Variant("meanflow", imagination="world-model"),
     "d2a-no-imagination": Variant("meanflow", cfg=True),
+    "d2a-present": Variant("meanflow", imagination="present", cfg=True),
     "mp1": Variant("meanflow"),
     "dp3": Variant("diffusion"),
     "mp1-state": Variant("meanflow", observation="state"),
@@ -64,7 +70,8 @@ ALGORITHMS = tuple(VARIANTS)
 
 
 def uses_imagination(algo: str) -> bool:
-    return VARIANTS[algo].imagination
+    """Whether ``algo`` reads a world model's imagined cloud (and so needs a world model)."""
+    return VARIANTS[algo].imagination == "world-model"
 
 
 @dataclass(frozen=True)
@@ -113,8 +120,8 @@ class PolicyConfig:
         variant = self.variant
         state = variant.observation == "state"
         encoder = dataclasses.replace(
-            self.encoder, n_obs_steps=self.n_obs_steps, use_imagination=variant.imagination, use_cloud=not state,
-            state_key="state" if state else "agent_pos",
+            self.encoder, n_obs_steps=self.n_obs_steps, use_imagination=variant.imagination != "none",
+            use_cloud=not state, state_key="state" if state else "agent_pos",
         )
         object.__setattr__(self, "encoder", encoder)
         # The time scale belongs to the algorithm: DDPM's 1000 for diffusion, 1 for flows.
@@ -130,7 +137,7 @@ class PolicyConfig:
         """The env observations the policy reads, in the order its windows hold them."""
         encoder = self.encoder
         return (("point_cloud",) if encoder.use_cloud else ()) + (encoder.state_key,) + (
-            (IMAGINED_KEY,) if encoder.use_imagination else ())
+            (IMAGINED_KEY,) if self.variant.imagination == "world-model" else ())
 
     @property
     def executed_actions(self) -> int:
@@ -207,9 +214,17 @@ class Policy(nn.Module):
         self.normalizers = normalizers
 
     def normalize_observation(self, observation: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """A raw observation window mapped onto [-1, 1] (clouds per axis), as the encoders read it."""
+        """A raw observation window mapped onto [-1, 1] (clouds per axis), as the encoders read it.
+
+        ``d2a-present`` reads the current cloud as its imagined one, unless the window holds an
+        ``imagined_point_cloud`` (the perception check shuffles that copy alone).
+        """
+        keys = self.config.observation_keys
+        if self.config.variant.imagination == "present":
+            observation = {IMAGINED_KEY: observation["point_cloud"], **observation}
+            keys = (*keys, IMAGINED_KEY)
         normalized = {}
-        for key in self.config.observation_keys:
+        for key in keys:
             normalizer = self.normalizers["point_cloud" if key in CLOUD_KEYS else key]
             normalized[key] = normalizer.normalize(observation[key][..., :3] if key in CLOUD_KEYS else observation[key])
         return normalized

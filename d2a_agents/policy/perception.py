@@ -3,8 +3,9 @@
 A policy that ignores its point cloud predicts the same actions when the clouds of a batch
 are permuted among its windows; one that reads them gets worse. :func:`reliance` measures
 the one-step error (normalized action MSE, the same noise in every pass) on a fixed set of
-windows three ways: intact, with the clouds (current and imagined together) shuffled, and
-with the low-dimensional observation (``agent_pos`` or ``state``) shuffled. The ratio
+windows: intact, with the clouds (current and imagined together) shuffled, with the
+imagined cloud alone shuffled (policies with a second cloud encoder), and with the
+low-dimensional observation (``agent_pos`` or ``state``) shuffled. The ratio
 shuffled / intact per input is the policy's reliance on it: about 1 means the input is
 ignored.
 """
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-from d2a_agents.policy.agent import CLOUD_KEYS, Policy
+from d2a_agents.policy.agent import CLOUD_KEYS, IMAGINED_KEY, Policy
 
 
 @dataclass(frozen=True)
@@ -26,6 +27,7 @@ class Reliance:
     intact: float
     clouds_shuffled: float | None  # None: the policy reads no cloud
     state_shuffled: float
+    imagined_shuffled: float | None = None  # None: no second cloud encoder
 
     @property
     def cloud_ratio(self) -> float | None:
@@ -35,9 +37,15 @@ class Reliance:
     def state_ratio(self) -> float:
         return self.state_shuffled / max(self.intact, 1e-12)
 
+    @property
+    def imagined_ratio(self) -> float | None:
+        return None if self.imagined_shuffled is None else self.imagined_shuffled / max(self.intact, 1e-12)
+
     def summary(self, where: str) -> str:
         cloud = "no cloud" if self.cloud_ratio is None else f"clouds shuffled {self.clouds_shuffled:.4f} " \
                                                              f"(x{self.cloud_ratio:.1f})"
+        if self.imagined_ratio is not None:
+            cloud += f", imagined alone {self.imagined_shuffled:.4f} (x{self.imagined_ratio:.1f})"
         return (f"one-step error on {self.windows} {where} windows: intact {self.intact:.4f}, {cloud}, "
                 f"state shuffled {self.state_shuffled:.4f} (x{self.state_ratio:.1f})")
 
@@ -62,6 +70,9 @@ def reliance(
     was_training = policy.training
     policy.eval()
     target = policy.normalizers["action"].normalize(actions)
+    second = policy.config.encoder.use_imagination
+    if second and IMAGINED_KEY not in observation:  # d2a-present: its second input is the current cloud
+        observation = {**observation, IMAGINED_KEY: observation["point_cloud"]}
     shift = torch.roll(torch.arange(batch, device=actions.device), batch // 2)  # a derangement for any batch >= 2
 
     def shuffled(keys: tuple[str, ...]) -> dict[str, torch.Tensor]:
@@ -71,5 +82,6 @@ def reliance(
     cloud_keys = tuple(key for key in observation if key in CLOUD_KEYS)
     clouds = _error(policy, shuffled(cloud_keys), target, seed) if cloud_keys else None
     state = _error(policy, shuffled((policy.config.encoder.state_key,)), target, seed)
+    imagined = _error(policy, shuffled((IMAGINED_KEY,)), target, seed) if second else None
     policy.train(was_training)
-    return Reliance(batch, intact, clouds, state)
+    return Reliance(batch, intact, clouds, state, imagined)

@@ -254,6 +254,7 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
         if file_sha256(world_model) != payload.get("world_model_sha256"):
             raise CheckpointError(f"the policy's world model {world_model} has changed since the policy was trained")
         kwargs["world_model"] = world_model
+        kwargs["imagined_points"] = payload["policy_config"]["num_points"]  # what the policy reads
     return kwargs
 
 
@@ -311,7 +312,9 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     dataset = DemoDataset.open_for_training(config.data)
     if uses_imagination(config.policy.algo) and config.world_model is None:
         raise ValueError(f"algo {config.policy.algo!r} imagines the future: pass --world-model")
-    imaginer = Imaginer.from_checkpoint(config.world_model) if uses_imagination(config.policy.algo) else None
+    # The imagined cloud at the policy's point count, as the env serves it when acting (eval_env_kwargs).
+    imaginer = (Imaginer.from_checkpoint(config.world_model, num_points=config.policy.num_points)
+                if uses_imagination(config.policy.algo) else None)
     if imaginer is not None and not set(dataset.metadata.tasks) <= set(imaginer_tasks(config.world_model)):
         raise CheckpointError(f"world model {config.world_model} was not trained on every task of {config.data}")
     frames = training_frames(dataset, config.policy, imaginer, config.progress)
