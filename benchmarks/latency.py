@@ -2,8 +2,12 @@
 
 D2A's MeanFlow expert (1 network evaluation per chunk) against the DP3-style diffusion
 expert (10 DDIM evaluations), with the same encoders and network, and the world model's
-imagination (voxelize, encode, band decode, FPS) per control step. Latency does not depend
-on the weights, so freshly initialised models are timed on real clouds of a D2A env.
+imagination (voxelize, encode, decode near the present, FPS) per control step. The policies'
+latency does not depend on the weights, so freshly initialised ones are timed on real clouds
+of a D2A env. An untrained world model does not know what moves, so it decodes the whole band
+around the present (an upper bound); a trained one (``world_model`` + ``data``) decodes from
+the present outwards, following what it moves, and is timed on its demonstrations with their
+recorded actions, at the env's cloud size and at the policy's point count.
 """
 
 from __future__ import annotations
@@ -13,13 +17,16 @@ import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import gymnasium as gym
 import torch
 
 import d2a_envs
 from collectors.dataset import Normalizer
-from d2a_agents.policy.agent import Policy, PolicyConfig
+from collectors.storage import DemoDataset
+from d2a_agents.policy.agent import CPU_POLICY_PRESET, Policy, PolicyConfig
+from d2a_agents.world_model.evaluation import imagination_latency
 from d2a_agents.world_model.imagine import Imaginer
 from d2a_agents.world_model.triplane import CPU_PRESET, TriplaneWorldModel, WorldModelConfig
 from d2a_agents.world_model.voxels import VoxelGrid
@@ -33,7 +40,13 @@ class LatencyBenchConfig:
     num_points: int = 1024
     repeats: int = 50
     world_models: tuple[WorldModelConfig, ...] = (WorldModelConfig(resolution=(32, 32, 8)), CPU_PRESET)
+    world_model: str | None = None  # a trained checkpoint, timed on ``data``
+    data: str | None = None
     threads: int = 1
+
+    def __post_init__(self) -> None:
+        if (self.world_model is None) != (self.data is None):
+            raise ValueError("a trained world model is timed on its demonstrations: give both world_model and data")
 
 
 def median_seconds(function: Callable[[], object], repeats: int) -> float:
@@ -57,28 +70,38 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
                    "agent_pos": Normalizer(-torch.ones(state_dim), torch.ones(state_dim)),
                    "point_cloud": Normalizer(cloud.amin(0), cloud.amax(0))}
     results = {}
-    for algo in ("d2a", "mp1", "dp3"):
-        policy_config = PolicyConfig(algo=algo, num_points=config.num_points)
+    policies = {algo: PolicyConfig(algo=algo, num_points=config.num_points) for algo in ("d2a", "mp1", "dp3")}
+    policies["d2a cpu preset"] = dataclasses.replace(CPU_POLICY_PRESET, algo="d2a")
+    for name, policy_config in policies.items():
         policy = Policy(policy_config, action_dim, state_dim, normalizers).eval()
-        window = {"point_cloud": cloud.expand(1, policy_config.n_obs_steps, -1, -1),
+        points = cloud[: policy_config.num_points]
+        window = {"point_cloud": points.expand(1, policy_config.n_obs_steps, -1, -1),
                   "agent_pos": torch.as_tensor(observation["agent_pos"]).expand(1, policy_config.n_obs_steps, -1)}
         if policy_config.encoder.use_imagination:
             window["imagined_point_cloud"] = window["point_cloud"]
-        results[algo] = median_seconds(lambda p=policy, w=window: p.predict_chunk(w), config.repeats)
+        results[name] = median_seconds(lambda p=policy, w=window: p.predict_chunk(w), config.repeats)
     box = env.get_wrapper_attr("config").crop_box
     for model_config in config.world_models:
         model = TriplaneWorldModel(dataclasses.replace(model_config, action_dim=action_dim))
-        imaginer = Imaginer(model, VoxelGrid(box, model_config.resolution), config.num_points)
+        imaginer = Imaginer(model, VoxelGrid(box, model_config.resolution), config.num_points, grow=False)
         actions = torch.zeros(model_config.action_history, action_dim)
-        name = "imagination " + "x".join(map(str, model_config.resolution))
+        name = "imagination " + "x".join(map(str, model_config.resolution)) + ", untrained, whole band"
         results[name] = median_seconds(lambda i=imaginer, a=actions: i(cloud, a), config.repeats)
     env.close()
+    if config.world_model is not None:
+        dataset = DemoDataset.open_for_training(config.data)
+        for points in (None, CPU_POLICY_PRESET.num_points):
+            size = "the data's cloud size" if points is None else f"{points} points"
+            name = f"imagination, trained ({Path(config.world_model).name}), {size}"
+            results[name] = imagination_latency(Path(config.world_model), dataset, config.repeats, points)
     print(f"\nbatch 1, {config.num_points} points, {config.threads} thread(s), median of {config.repeats}\n")
     print("| what | network evaluations | median ms |")
     print("| --- | --- | --- |")
     print(f"| D2A policy (MeanFlow; current + imagined cloud encoders) | 1 | {1000 * results['d2a']:.2f} |")
     print(f"| MeanFlow policy, one cloud encoder (MP1-style) | 1 | {1000 * results['mp1']:.2f} |")
     print(f"| DP3-style policy (DDIM), the same single encoder | 10 | {1000 * results['dp3']:.2f} |")
+    print(f"| D2A policy, cpu preset ({CPU_POLICY_PRESET.num_points} points) | 1 | "
+          f"{1000 * results['d2a cpu preset']:.2f} |")
     for name, seconds in results.items():
         if name.startswith("imagination"):
             print(f"| world model {name} | 1 | {1000 * seconds:.2f} |")

@@ -186,7 +186,8 @@ def cmd_bench_experts(args: argparse.Namespace) -> None:
 def cmd_bench_latency(args: argparse.Namespace) -> None:
     from benchmarks.latency import LatencyBenchConfig, run
 
-    run(LatencyBenchConfig(task=args.task, num_points=args.num_points, repeats=args.repeats))
+    run(LatencyBenchConfig(task=args.task, num_points=args.num_points, repeats=args.repeats,
+                           world_model=args.world_model, data=args.data))
 
 
 def cmd_bench_train(args: argparse.Namespace) -> None:
@@ -386,6 +387,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench_latency.add_argument("--task", default="hammer")
     bench_latency.add_argument("--num-points", type=POSITIVE, default=1024)
     bench_latency.add_argument("--repeats", type=POSITIVE, default=50)
+    bench_latency.add_argument("--world-model", help="also time this trained world model (needs --data)")
+    bench_latency.add_argument("--data", help="demonstrations to imagine from, with their recorded actions")
     bench_latency.set_defaults(func=cmd_bench_latency)
 
     bench_train = bench.add_parser("train", help="policy training throughput (samples/s) per preset and variant")

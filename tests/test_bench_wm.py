@@ -29,4 +29,6 @@ def test_bench_trains_each_model_at_each_horizon_and_prints_one_row_each(reach_d
         assert all(0 <= value < 1 for value in row["chamfer"].values())  # metres, inside a 1-m workspace
     assert len(list((tmp_path / "models").glob("reach_*.pt"))) == 4
     table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| reach |")]
-    assert len(table) == 4 and all(line.count("/") == 3 for line in table)  # four Chamfer figures per row
+    # two latencies (the env's cloud size / the policy's points) and four Chamfer figures per row
+    assert len(table) == 4 and all(line.count("/") == 1 + 3 for line in table)
+    assert all(0 < row["policy_latency"] for row in rows)

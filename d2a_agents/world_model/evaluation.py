@@ -17,15 +17,22 @@ from d2a_agents.world_model.imagine import Imaginer, occupancy_to_points
 from d2a_envs.sampling import sample_to_size
 
 
-def imagination_latency(checkpoint: Path, dataset: DemoDataset, steps: int) -> float:
-    """Median seconds of one imagination (voxelize, encode, band decode, FPS) on stored clouds."""
-    imaginer = Imaginer.from_checkpoint(checkpoint)
-    clouds = dataset.frames()["point_cloud"][:steps]
-    actions = torch.zeros(imaginer.config.action_history, imaginer.config.action_dim)
+def imagination_latency(checkpoint: Path, dataset: DemoDataset, steps: int, num_points: int | None = None) -> float:
+    """Median seconds of one imagination (voxelize, encode, decode near the present, FPS to
+    ``num_points``; default: the checkpoint's) over ``steps`` stored transitions spread over the
+    data set, each with its recorded action history (the decoding follows what the model moves,
+    so the cost depends on the scene and the actions)."""
+    imaginer = Imaginer.from_checkpoint(checkpoint, num_points=num_points)
+    frames = dataset.frames()
+    config = imaginer.config
+    transitions = WorldModelTransitions(frames, imaginer.grid, config.horizon, config.action_history)
+    positions = torch.linspace(0, len(transitions) - 1, min(steps, len(transitions))).long()
+    clouds = frames["point_cloud"][transitions.rows[positions]]
+    actions = transitions.past_actions(positions)
     timings = []
-    for cloud in clouds:
+    for cloud, history in zip(clouds, actions, strict=True):
         start = time.perf_counter()
-        imaginer(cloud, actions)
+        imaginer(cloud, history)
         timings.append(time.perf_counter() - start)
     return statistics.median(timings)
 
