@@ -124,8 +124,8 @@ def _print_table(config: WorldModelBenchConfig, rows: list[dict[str, object]]) -
                              for key in ("imagined", "centres", "persistence", "oracle"))
         print(f"| {row['task']} | {row['label']} | {row['horizon']} | {row['steps']} | {100 * row['full']:.1f} | "
               f"{100 * row['dynamic']:.1f} | {100 * row['persistence']:.1f} | {'-' if paper is None else paper} | "
-              f"{row['params']} | {row['seconds']:.0f} | {1000 * row['latency']:.1f} / {1000 * row['policy_latency']:.1f} | "
-              f"{chamfer} |")
+              f"{row['params']} | {row['seconds']:.0f} | {1000 * row['latency']:.1f} / "
+              f"{1000 * row['policy_latency']:.1f} | {chamfer} |")
 
 
 if __name__ == "__main__":
