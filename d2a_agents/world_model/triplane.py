@@ -256,6 +256,7 @@ class VoxelDecoder:
     keeps the generic path.
     """
 
+    @torch.no_grad()
     def __init__(self, model: TriplaneWorldModel, features: list[torch.Tensor]) -> None:
         if features[0].shape[0] != 1:
             raise ValueError(f"a VoxelDecoder decodes one scene, got a batch of {features[0].shape[0]}")
@@ -278,16 +279,18 @@ class VoxelDecoder:
         origin = positional_embedding(weight.new_zeros(1, 3), config.pe_frequencies) @ w_position.T
         constant = bias - 2.0 * origin[0]
 
-        def projected(plane: torch.Tensor) -> torch.Tensor:  # (1, C, U, V) -> (U, V, hidden)
-            return torch.einsum("hc,cuv->uvh", w_features, plane[0])
+        def projected(plane: torch.Tensor) -> torch.Tensor:  # (1, C, U, V) -> (U * V, hidden), row u * V + v
+            return plane[0].reshape(c, -1).T @ w_features.T
 
-        xy = projected(features[0]) + axes[0][:, None] + axes[1][None, :] + constant
-        if config.feature_mode == "triplane":
-            xz = projected(features[1]) + axes[2][None, :]
-            self.tables = [(xy.reshape(nx * ny, -1), (0, 1)), (xz.reshape(nx * nz, -1), (0, 2)),
-                           (projected(features[2]).reshape(ny * nz, -1), (1, 2))]
-        else:  # xy: the z term of the positional embedding still needs a table of its own
-            self.tables = [(xy.reshape(nx * ny, -1), (0, 1)), (axes[2], (2,))]
+        x_term, y_term, z_term = axes
+        if config.feature_mode == "triplane":  # the axis terms ride on the two small planes
+            xz = projected(features[1]).view(nx, nz, -1).add_(x_term[:, None] + constant).add_(z_term[None, :])
+            yz = projected(features[2]).view(ny, nz, -1).add_(y_term[:, None])
+            self.tables = [(projected(features[0]), (0, 1)), (xz.view(nx * nz, -1), (0, 2)),
+                           (yz.view(ny * nz, -1), (1, 2))]
+        else:  # xy: the z term of the positional embedding needs a table of its own
+            xy = projected(features[0]).view(nx, ny, -1).add_(x_term[:, None] + constant).add_(y_term[None, :])
+            self.tables = [(xy.view(nx * ny, -1), (0, 1)), (z_term, (2,))]
         self.skip_weight = weight[:, -1] if config.occupancy_skip else None
         self.hidden = model.decoder[1:]
 
