@@ -24,20 +24,8 @@ from d2a_envs.wrappers import PointCloudObservation  # noqa: E402
 
 register_all()
 
-# Imagination needs torch/torchrl and the world model: imported on first use, not by ``import d2a_envs``.
-_LAZY = {"ImaginationTransform": "d2a_envs.imagination", "ImaginationWrapper": "d2a_envs.imagination"}
-
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 __all__ = [
-    "CropBox", "DEFAULT_MAX_EPISODE_STEPS", "ImaginationTransform", "ImaginationWrapper", "PointCloudConfig",
+    "CropBox", "DEFAULT_MAX_EPISODE_STEPS", "PointCloudConfig",
     "PointCloudObservation", "PointCloudSensor", "SUITE_DEFAULTS", "TASKS", "TaskSpec", "get_task", "list_tasks",
     "make_env",
 ]

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from importlib.metadata import entry_points
 
 import gymnasium as gym
 
@@ -14,6 +15,18 @@ from d2a_envs.suites.metaworld import MetaWorldEnv
 from d2a_envs.wrappers import PointCloudObservation
 
 _SUITE_ENVS: dict[str, type[SuiteEnv]] = {"metaworld": MetaWorldEnv, "adroit": AdroitEnv}
+# Wrappers that packages above this one provide by name (``world_model``: the imagination
+# wrapper of ``d2a_agents``), found through installed entry points: no import points upwards.
+WRAPPER_ENTRY_POINTS = "d2a_envs.wrappers"
+
+
+def plugin_wrapper(name: str) -> Callable[..., gym.Env]:
+    """The wrapper an installed package registers as ``name`` in the ``d2a_envs.wrappers`` group."""
+    found = [point for point in entry_points(group=WRAPPER_ENTRY_POINTS) if point.name == name]
+    if not found:
+        raise ImportError(f"no installed package provides the {name!r} wrapper (entry point group "
+                          f"{WRAPPER_ENTRY_POINTS!r}); install d2a with its agents (pip install -e .)")
+    return found[0].load()
 
 
 def make_env(
@@ -35,7 +48,8 @@ def make_env(
 
     Prefer ``gym.make("D2A-MetaWorld-Hammer-v0", **kwargs)``, which adds the 200-step time
     limit; the keyword arguments are the same. ``world_model`` (a checkpoint of ``d2a train-wm``)
-    adds ``imagined_point_cloud`` through :class:`~d2a_envs.imagination.ImaginationWrapper`, of
+    adds ``imagined_point_cloud`` through the ``world_model`` wrapper plugin
+    (:class:`~d2a_agents.world_model.observation.ImaginationWrapper`), of
     ``imagined_points`` points (default: ``num_points``; a policy that reads 64 points asks for 64,
     which spares a farthest-point pass over thousands of points at every step).
     """
@@ -49,9 +63,8 @@ def make_env(
     if imagined_points is not None and world_model is None:
         raise ValueError("imagined_points needs a world_model")
     if world_model is not None:
-        from d2a_envs.imagination import ImaginationWrapper
         from d2a_envs.tasks import TASKS
 
         name = next((spec.name for spec in TASKS if spec.suite == suite and spec.task == task), None)
-        env = ImaginationWrapper(env, world_model, task=name, num_points=imagined_points)
+        env = plugin_wrapper("world_model")(env, world_model, task=name, num_points=imagined_points)
     return env

@@ -13,9 +13,9 @@ from torchrl.envs.utils import step_mdp
 
 from d2a_agents.checkpoint import CheckpointError, save_checkpoint
 from d2a_agents.world_model.imagine import CHECKPOINT_KIND, Imaginer
+from d2a_agents.world_model.observation import IMAGINED_KEY, ImaginationTransform, ImaginationWrapper, load_imaginer
 from d2a_agents.world_model.triplane import TriplaneWorldModel, WorldModelConfig
 from d2a_envs import SUITE_DEFAULTS, make_env  # registers the D2A-* ids
-from d2a_envs.imagination import IMAGINED_KEY, ImaginationTransform, ImaginationWrapper, load_imaginer
 
 ENV_ID = "D2A-MetaWorld-Hammer-v0"
 NUM_POINTS = 128

@@ -39,9 +39,9 @@ from torch import nn
 from collectors.dataset import Normalizer
 from collectors.envs import STATE_KEY
 from d2a_agents.policy.networks import EncoderConfig, ObservationEncoder, VelocityNet, VelocityNetConfig
+from d2a_agents.world_model.imagine import IMAGINED_KEY
 from d2a_envs.sampling import farthest_point_indices
 
-IMAGINED_KEY = "imagined_point_cloud"
 CLOUD_KEYS = ("point_cloud", IMAGINED_KEY)  # normalized with the current cloud's normalizer
 
 

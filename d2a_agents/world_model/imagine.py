@@ -15,6 +15,7 @@ from d2a_agents.world_model.voxels import VoxelGrid
 from d2a_envs.sampling import CropBox, sample_to_size
 
 CHECKPOINT_KIND = "world_model"
+IMAGINED_KEY = "imagined_point_cloud"  # the observation an imagining env adds
 # The 26 voxels around a voxel (Chebyshev distance 1).
 NEIGHBOUR_OFFSETS = torch.stack(torch.meshgrid(*[torch.arange(-1, 2)] * 3, indexing="ij"), dim=-1).reshape(-1, 3)
 NEIGHBOUR_OFFSETS = NEIGHBOUR_OFFSETS[NEIGHBOUR_OFFSETS.abs().sum(dim=1) > 0]

@@ -7,8 +7,8 @@ add ``imagined_point_cloud`` = ``imaginer(current cloud, last K actions)`` on ev
 and step. The action history follows the training data's convention: the observation at
 step t comes with the actions a_{t-K} .. a_{t-1}, oldest first.
 
-The world model lives in ``d2a_agents``, which is imported only when an imagination
-wrapper or transform is built, so ``import d2a_envs`` stays free of it.
+``gym.make("D2A-...", world_model=...)`` finds the wrapper through the ``d2a_envs.wrappers``
+entry point that this package declares, so ``d2a_envs`` never imports ``d2a_agents``.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from __future__ import annotations
 import copy
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -26,13 +26,12 @@ from tensordict import NestedKey, TensorDictBase
 from torchrl.data import Bounded, Composite
 from torchrl.envs import Transform
 
+from d2a_agents.checkpoint import CheckpointError
+from d2a_agents.world_model.imagine import IMAGINED_KEY, Imaginer
 from d2a_envs.sampling import CropBox
 from d2a_envs.wrappers import PointCloudObservation
 
-if TYPE_CHECKING:
-    from d2a_agents.world_model.imagine import Imaginer
-
-IMAGINED_KEY = "imagined_point_cloud"
+__all__ = ["IMAGINED_KEY", "ImaginationTransform", "ImaginationWrapper", "check_world_model", "load_imaginer"]
 # Crop boxes read back from float32 spaces/specs differ from the float64 box of a
 # checkpoint by rounding only; anything above this is a real mismatch.
 _BOX_TOLERANCE = 1e-5
@@ -45,8 +44,6 @@ def load_imaginer(world_model: Imaginer | str | os.PathLike, num_points: int, se
     file); an ``Imaginer`` is shallow-copied (the network is shared, read-only) so that its
     point count and generator can be set without touching the caller's object.
     """
-    from d2a_agents.world_model.imagine import Imaginer
-
     if isinstance(world_model, Imaginer):
         imaginer = copy.copy(world_model)
         imaginer.num_points = int(num_points)
@@ -63,8 +60,6 @@ def check_world_model(imaginer: Imaginer, crop_box: CropBox, action_dim: int, so
     Boxes equal up to float32 rounding count as equal. Raises
     :class:`~d2a_agents.checkpoint.CheckpointError` naming ``source`` on a mismatch.
     """
-    from d2a_agents.checkpoint import CheckpointError
-
     grid_box = imaginer.grid.box
     close = np.allclose(crop_box.low, grid_box.low, rtol=0, atol=_BOX_TOLERANCE) and np.allclose(
         crop_box.high, grid_box.high, rtol=0, atol=_BOX_TOLERANCE
@@ -152,8 +147,6 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.imaginer = load_imaginer(world_model, num_points, seed)
         check_world_model(self.imaginer, crop_box, env.action_space.shape[0], _describe(world_model))
         if task is not None and self.imaginer.tasks and task not in self.imaginer.tasks:
-            from d2a_agents.checkpoint import CheckpointError
-
             raise CheckpointError(f"{_describe(world_model)} was trained on {list(self.imaginer.tasks)}, "
                                   f"not on {task}: it cannot imagine this scene")
         self.crop_box = crop_box
@@ -228,8 +221,6 @@ class ImaginationTransform(Transform):
         seed: int = 0,
     ) -> None:
         super().__init__(in_keys=[cloud_key, action_key], out_keys=[out_key])
-        from d2a_agents.world_model.imagine import Imaginer
-
         if isinstance(world_model, (str, os.PathLike)):  # load once, fail early on a bad file
             world_model = Imaginer.from_checkpoint(Path(world_model), num_points=num_points)
         elif not isinstance(world_model, Imaginer):
