@@ -156,3 +156,10 @@ def test_bfloat16_point_mlp_matches_float32_and_keeps_float32_weights():
     assert first.dtype == torch.float32 and first.grad is not None and first.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="point_dtype"):
         EncoderConfig(point_dtype="float16")
+
+
+def test_the_expert_and_the_policy_default_to_the_same_cfg_thresholds():
+    from d2a_agents.policy.meanflow import MeanFlowConfig
+
+    expert = MeanFlowConfig()
+    assert (expert.tau_l, expert.tau_h) == PolicyConfig().cfg_thresholds

@@ -69,15 +69,13 @@ class MeanFlowConfig:
     (MeanFlow's adaptive loss; p = 0 gives the plain squared error).
 
     CFG thresholds, in cosine-similarity units: w = 0 for rho <= tau_l, 1 for rho >= tau_h,
-    linear between (eq. 7; the paper gives no values). ``tau_l = 0``: a null prediction
-    orthogonal to, or pointing away from, its reference (rho <= 0) shares no direction with
-    it, and the target becomes the unconditional prediction; ``tau_h = 0.5`` (60 degrees):
-    above it the two agree well and the plain conditional v is kept. With the velocity
-    reading, rho = cos(v, u_null) of a trained null branch lies mostly in (0, 1) (batch mean
-    about 0.45 on a 2-D toy), so the linear band covers the bulk of the batch rather than
-    saturating at either end. At a zero-initialised output layer u_null = 0, so rho = 0 and
-    w = 0: the conditional samples start learning once the dropped ones have moved the null
-    branch (a few hundred steps on the toy). ``cfg_similarity``: "prediction" (rho =
+    linear between (eq. 7; the paper gives no values). The defaults (-1, 0), the policy's too
+    (``PolicyConfig.cfg_thresholds``, where the Hammer runs that chose them are noted), keep
+    the conditional velocity wherever the two predictions share a direction (rho >= 0) and
+    blend towards the unconditional one only as they turn opposite. ``tau_l = 0`` instead
+    sets w = 0 for every rho <= 0, which is where an untrained null branch starts (at a
+    zero-initialised output layer u_null = 0, so rho = 0): the conditional branch then first
+    learns the unconditional field. ``cfg_similarity``: "prediction" (rho =
     cos(u_cond, u_null)) or "velocity" (rho = cos(v, u_null)); see the module docstring.
     """
 
@@ -88,8 +86,8 @@ class MeanFlowConfig:
     adaptive_eps: float = 1e-3
     drop_probability: float = 0.1
     cfg_enabled: bool = True
-    tau_l: float = 0.0
-    tau_h: float = 0.5
+    tau_l: float = -1.0
+    tau_h: float = 0.0
     cfg_similarity: str = "prediction"
     # How the gate w of eq. 7 shapes the target. "interpolate" (the paper's eq. 6 as written):
     # v_cfg = w v + (1 - w) u_null, w in [0, 1], only ever towards the unconditional field.
