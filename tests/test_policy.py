@@ -9,7 +9,7 @@ import torch
 from collectors.dataset import Normalizer
 from d2a_agents.policy.agent import Policy, PolicyConfig, PolicyRunner
 from d2a_agents.policy.diffusion import Diffusion
-from d2a_agents.policy.meanflow import MeanFlow
+from d2a_agents.policy.meanflow import MeanFlow, MeanFlowConfig
 from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
 
 TINY = dict(num_points=16, encoder=EncoderConfig(point_widths=(8,)), network=VelocityNetConfig(hidden=16, layers=1))
@@ -159,7 +159,5 @@ def test_bfloat16_point_mlp_matches_float32_and_keeps_float32_weights():
 
 
 def test_the_expert_and_the_policy_default_to_the_same_cfg_thresholds():
-    from d2a_agents.policy.meanflow import MeanFlowConfig
-
     expert = MeanFlowConfig()
     assert (expert.tau_l, expert.tau_h) == PolicyConfig().cfg_thresholds
