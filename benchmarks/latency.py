@@ -79,7 +79,7 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
                   "agent_pos": torch.as_tensor(observation["agent_pos"]).expand(1, policy_config.n_obs_steps, -1)}
         if policy_config.encoder.use_imagination:
             window["imagined_point_cloud"] = window["point_cloud"]
-        results[name] = median_seconds(lambda p=policy, w=window: p.predict_chunk(w), config.repeats)
+        results[name] = median_seconds(lambda p=policy, w=window: p.predict_action_chunk(w), config.repeats)
     box = env.get_wrapper_attr("config").crop_box
     for model_config in config.world_models:
         model = TriplaneWorldModel(dataclasses.replace(model_config, action_dim=action_dim))

@@ -1,4 +1,4 @@
-"""Policy configuration and the runner's observation history and action queue."""
+"""Policy configuration, its inputs, and acting: the observation history and the action queue."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from collectors.dataset import Normalizer
-from d2a_agents.policy.agent import Policy, PolicyConfig, PolicyRunner
+from d2a_agents.policy.agent import Policy, PolicyConfig
 from d2a_agents.policy.diffusion import Diffusion
 from d2a_agents.policy.meanflow import MeanFlow, MeanFlowConfig
 from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
@@ -64,30 +64,44 @@ def test_config_round_trip_and_bad_algo():
         PolicyConfig(algo="ppo")
 
 
-def test_runner_plans_once_per_chunk_and_forgets_on_reset(monkeypatch):
-    runner = PolicyRunner(tiny_policy("mp1"))
+def test_policy_plans_once_per_chunk_and_forgets_on_reset(monkeypatch):
+    policy = tiny_policy("mp1")
     windows = []
-    original = runner.policy.predict_chunk
+    original = policy.predict_action_chunk
 
     def recording(window, generator=None):
         windows.append({key: value.clone() for key, value in window.items()})
         return original(window, generator)
 
-    monkeypatch.setattr(runner.policy, "predict_chunk", recording)
+    monkeypatch.setattr(policy, "predict_action_chunk", recording)
     rng = np.random.default_rng(0)
 
     def observation(value: float) -> dict[str, np.ndarray]:
         return {"point_cloud": rng.random((32, 3)).astype(np.float32), "agent_pos": np.full(4, value, np.float32)}
 
-    actions = [runner.act(observation(float(step))) for step in range(7)]
+    policy.reset(seed=0)
+    actions = [policy.select_action(observation(float(step))) for step in range(7)]
     assert len(windows) == 3  # steps 0, 3 and 6 plan; 3 actions executed per chunk
     assert all(action.shape == (4,) and np.isfinite(action).all() for action in actions)
     assert windows[0]["agent_pos"][0, :, 0].tolist() == [0.0, 0.0]  # first frame repeated
     assert windows[1]["agent_pos"][0, :, 0].tolist() == [2.0, 3.0]  # the two latest observations
     assert windows[0]["point_cloud"].shape == (1, 2, 16, 3)  # FPS to num_points
-    runner.reset()
-    runner.act(observation(9.0))
+    policy.reset(seed=0)
+    policy.select_action(observation(9.0))
     assert len(windows) == 4 and windows[3]["agent_pos"][0, :, 0].tolist() == [9.0, 9.0]
+
+
+def test_an_episode_s_actions_depend_on_its_seed_only():
+    policy = tiny_policy("mp1")
+    observation = {"point_cloud": np.random.default_rng(1).random((32, 3)).astype(np.float32),
+                   "agent_pos": np.zeros(4, np.float32)}
+    policy.reset(seed=5)
+    first = policy.select_action(observation)
+    policy.reset(seed=6)
+    other = policy.select_action(observation)
+    policy.reset(seed=5)
+    np.testing.assert_array_equal(policy.select_action(observation), first)
+    assert not np.array_equal(first, other)
 
 
 def test_clouds_are_normalized_per_axis_inside_the_policy():

@@ -20,7 +20,7 @@ second encoder reads the current cloud in place of the imagined one (no world mo
 
 The policy owns its normalizers (min/max to [-1, 1]: actions, the low-dimensional
 observation, and the clouds per axis, the imagined cloud with the current cloud's map) and
-applies them the same way in :meth:`Policy.loss` and :meth:`Policy.predict_chunk`: callers
+applies them the same way in :meth:`Policy.compute_loss` and :meth:`Policy.predict_action_chunk`: callers
 pass raw observations and actions in env units.
 """
 
@@ -190,12 +190,20 @@ def normalizer_keys(config: PolicyConfig) -> tuple[str, ...]:
 
 
 class Policy(nn.Module):
-    """Encoders + velocity network + expert + normalizers: everything a checkpoint holds.
+    """Encoders + velocity network + expert + normalizers: everything a checkpoint holds, and
+    the acting interface.
+
+    Training: :meth:`compute_loss` on a batch of raw windows. Acting: :meth:`reset` at every
+    episode start, then :meth:`select_action` on each raw env observation; the policy keeps
+    the last ``n_obs_steps`` observations and a queue of planned actions, and plans a new
+    chunk (:meth:`predict_action_chunk`) when the queue is empty.
 
     Example:
         >>> policy, _ = load_policy("runs/hammer/mp1/policy.pt")   # d2a_agents.policy.train
+        >>> observation, _ = env.reset(seed=0); policy.reset(seed=0)
+        >>> action = policy.select_action(observation)           # (A,) float32, env units
         >>> window = {"point_cloud": clouds, "agent_pos": positions}  # (B, n_obs, N, 3), (B, n_obs, 4)
-        >>> policy.predict_chunk(window).shape                       # env units
+        >>> policy.predict_action_chunk(window).shape               # env units
         torch.Size([B, 4, 4])
     """
 
@@ -212,6 +220,7 @@ class Policy(nn.Module):
         self.net = VelocityNet(config.network, config.horizon, action_dim, self.encoder.out_dim)
         self.expert = make_expert(config)
         self.normalizers = normalizers
+        self.reset()
 
     def normalize_observation(self, observation: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """A raw observation window mapped onto [-1, 1] (clouds per axis), as the encoders read it.
@@ -233,8 +242,11 @@ class Policy(nn.Module):
         """f_c from a raw observation window."""
         return self.encoder(self.normalize_observation(observation))
 
-    def loss(self, observation: dict[str, torch.Tensor], actions: torch.Tensor, generator: torch.Generator | None):
-        """Training loss on a batch of raw windows (observations and actions in env units)."""
+    def compute_loss(
+        self, observation: dict[str, torch.Tensor], actions: torch.Tensor, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, dict[str, float]]:
+        """Training loss and logged figures on a batch of raw windows (observations and action
+        chunks (B, horizon, A) in env units)."""
         normalized = self.normalizers["action"].normalize(actions)
         return self.expert.loss(self.net, normalized, self.condition(observation), generator=generator)
 
@@ -246,50 +258,40 @@ class Policy(nn.Module):
         return self.expert.sample(self.net, self.condition(observation), generator=generator)
 
     @torch.no_grad()
-    def predict_chunk(self, observation: dict[str, torch.Tensor], generator: torch.Generator | None = None):
+    def predict_action_chunk(self, observation: dict[str, torch.Tensor], generator: torch.Generator | None = None):
         """Action chunk (B, horizon, A) in env units from a raw observation window."""
         return self.normalizers["action"].unnormalize(self.sample_normalized(observation, generator))
 
-
-class PolicyRunner:
-    """Acts in an environment: keeps the last ``n_obs_steps`` observations and a queue of
-    planned actions, plans a new chunk when the queue is empty, and forgets both on reset.
-
-    Example:
-        >>> runner = PolicyRunner(policy)
-        >>> observation, _ = env.reset(seed=0); runner.reset()
-        >>> action = runner.act(observation)
-    """
-
-    def __init__(self, policy: Policy, seed: int = 0) -> None:
-        self.policy = policy.eval()
-        self.keys = list(policy.config.observation_keys)
-        self.generator = torch.Generator().manual_seed(seed)
-        self.reset()
-
-    def reset(self) -> None:
-        self.history: deque[dict[str, torch.Tensor]] = deque(maxlen=self.policy.config.n_obs_steps)
-        self.queue: deque[np.ndarray] = deque()
+    def reset(self, seed: int = 0) -> None:
+        """Start an episode: forget the observations and planned actions, reseed the sampler
+        (an episode's actions then depend on its seed only, not on what ran before)."""
+        self._history: deque[dict[str, torch.Tensor]] = deque(maxlen=self.config.n_obs_steps)
+        self._queue: deque[np.ndarray] = deque()
+        self._generator = torch.Generator().manual_seed(int(seed))
 
     def _observe(self, observation: dict[str, np.ndarray]) -> None:
         frame = {}
-        for key in self.keys:
+        for key in self.config.observation_keys:
             value = torch.as_tensor(np.asarray(observation[key]), dtype=torch.float32)
-            frame[key] = subsample_cloud(value[:, :3], self.policy.config.num_points) if value.ndim == 2 else value
-        if not self.history:
-            self.history.extend([frame] * self.policy.config.n_obs_steps)  # repeat the first frame, as in training
+            frame[key] = subsample_cloud(value[:, :3], self.config.num_points) if value.ndim == 2 else value
+        if not self._history:
+            self._history.extend([frame] * self.config.n_obs_steps)  # repeat the first frame, as in training
         else:
-            self.history.append(frame)
+            self._history.append(frame)
 
-    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
-        """The next action (A,) float32 for this observation."""
+    @torch.no_grad()
+    def select_action(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        """The next action (A,) float32 for one raw env observation (keys as the env names them)."""
         self._observe(observation)
-        if not self.queue:
-            window = {key: torch.stack([frame[key] for frame in self.history])[None] for key in self.keys}
-            chunk = self.policy.predict_chunk(window, self.generator)[0].numpy()
-            start = self.policy.config.n_obs_steps - 1
-            self.queue.extend(chunk[start : start + self.policy.config.executed_actions])
-        action = self.queue.popleft().astype(np.float32)
+        if not self._queue:
+            window = {key: torch.stack([frame[key] for frame in self._history])[None]
+                      for key in self.config.observation_keys}
+            was_training = self.training
+            chunk = self.eval().predict_action_chunk(window, self._generator)[0].numpy()
+            self.train(was_training)
+            start = self.config.n_obs_steps - 1
+            self._queue.extend(chunk[start : start + self.config.executed_actions])
+        action = self._queue.popleft().astype(np.float32)
         if not np.all(np.isfinite(action)):
             raise ValueError(f"the policy produced a non-finite action {action}")
         return action
@@ -300,23 +302,22 @@ TORCHRL_KEYS = {"state": STATE_KEY}
 
 
 class TorchRLPolicy(TensorDictModuleBase):
-    """A :class:`PolicyRunner` as a TorchRL policy: reads the env's observation keys, writes
+    """A :class:`Policy` as a TorchRL policy: reads the env's observation keys, writes
     ``action``. On the first step of an episode (``is_init``, from an ``InitTracker``) it
-    forgets its history and reseeds its sampler with the episode's seed, so results do not
-    depend on how episodes are spread over workers.
+    resets the policy with the episode's seed, so results do not depend on how episodes are
+    spread over workers.
     """
 
     def __init__(self, policy: Policy) -> None:
         super().__init__()
-        self.runner = PolicyRunner(policy)
-        self.observation_keys = {key: TORCHRL_KEYS.get(key, key) for key in self.runner.keys}
+        self.policy = policy.eval()
+        self.observation_keys = {key: TORCHRL_KEYS.get(key, key) for key in policy.config.observation_keys}
         self.in_keys = [*self.observation_keys.values(), "is_init", "episode_seed"]
         self.out_keys = ["action"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if bool(tensordict.get("is_init", torch.ones(1, dtype=torch.bool)).any()):
-            self.runner.reset()
-            self.runner.generator.manual_seed(int(tensordict.get("episode_seed", torch.zeros(())).reshape(-1)[0]))
+            self.policy.reset(seed=int(tensordict.get("episode_seed", torch.zeros(())).reshape(-1)[0]))
         observation = {key: tensordict.get(name).numpy() for key, name in self.observation_keys.items()}
-        tensordict.set("action", torch.as_tensor(self.runner.act(observation)))
+        tensordict.set("action", torch.as_tensor(self.policy.select_action(observation)))
         return tensordict

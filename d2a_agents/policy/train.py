@@ -282,7 +282,7 @@ def training_step(
     """One optimizer step on ``batch_size`` windows drawn from ``windows``; returns the loss figures."""
     batch = windows.sample(batch_size, generator)
     keys = policy.config.observation_keys
-    loss, info = policy.loss({key: batch["obs", key] for key in keys}, batch["action"], generator)
+    loss, info = policy.compute_loss({key: batch["obs", key] for key in keys}, batch["action"], generator)
     optimizer.zero_grad()
     loss.backward()
     optimizer.step()
