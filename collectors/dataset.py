@@ -1,4 +1,4 @@
-"""Policy-training windows over stored demonstrations, and the min/max normalizers they use.
+"""Policy-training windows over stored demonstrations, and the min/max normalizer policies use.
 
 A window follows the Diffusion Policy / DP3 convention. For a *current* step ``t`` of an
 episode it holds ``n_obs_steps`` observations and ``horizon`` actions, both starting at
@@ -26,15 +26,13 @@ without loading the whole data set.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torch import nn
 from torch.utils.data import Dataset
-
-from collectors.atomic import atomic_torch_save
 
 RANGE_EPS = 1e-4  # dimensions whose data range is below this are treated as constant (DP3's range_eps)
 
@@ -72,11 +70,12 @@ def _require_finite(name: str, data: torch.Tensor) -> None:
         raise ValueError(f"{name} holds NaN or inf values")
 
 
-class Normalizer:
+class Normalizer(nn.Module):
     """Per-dimension affine map of data onto [-1, 1] from its min and max.
 
     Dimensions whose range is below ``range_eps`` are only centred (scale 1), so a constant
-    dimension maps to exactly 0 and back to exactly its value.
+    dimension maps to exactly 0 and back to exactly its value. A module whose statistics are
+    buffers: inside a policy they belong to its state dict, so a checkpoint carries them.
 
     Example:
         >>> normalizer = Normalizer.fit(torch.tensor([[0.0, 5.0], [2.0, 5.0]]))
@@ -87,6 +86,7 @@ class Normalizer:
     """
 
     def __init__(self, low: torch.Tensor, high: torch.Tensor, range_eps: float = RANGE_EPS) -> None:
+        super().__init__()
         if low.shape != high.shape:
             raise ValueError(f"low {tuple(low.shape)} and high {tuple(high.shape)} differ in shape")
         _require_finite("normalizer low", low)
@@ -95,12 +95,13 @@ class Normalizer:
             raise ValueError("normalizer high lies below low")
         if not range_eps > 0:
             raise ValueError(f"range_eps must be positive, not {range_eps}")
-        self.low = low.to(torch.float64)
-        self.high = high.to(torch.float64)
-        self.range_eps = float(range_eps)
-        half_range = (self.high - self.low) / 2
-        self.centre = self.low + half_range
-        self.half_range = torch.where(2 * half_range < self.range_eps, torch.ones_like(half_range), half_range)
+        low, high = low.to(torch.float64), high.to(torch.float64)
+        half_range = (high - low) / 2
+        self.register_buffer("low", low)
+        self.register_buffer("high", high)
+        self.register_buffer("centre", low + half_range)
+        self.register_buffer("half_range", torch.where(2 * half_range < range_eps, torch.ones_like(half_range),
+                                                       half_range))
 
     @classmethod
     def fit(cls, data: torch.Tensor, range_eps: float = RANGE_EPS) -> Normalizer:
@@ -110,6 +111,11 @@ class Normalizer:
             raise ValueError(f"cannot fit a normalizer to data of shape {tuple(data.shape)}")
         _require_finite("normalizer data", data)
         return cls(data.amin(0), data.amax(0), range_eps)
+
+    @classmethod
+    def placeholder(cls, *shape: int) -> Normalizer:
+        """The identity map of that shape, to be overwritten by ``load_state_dict``."""
+        return cls(-torch.ones(shape), torch.ones(shape))
 
     @property
     def shape(self) -> torch.Size:
@@ -129,35 +135,6 @@ class Normalizer:
         """Inverse of :meth:`normalize` (e.g. to turn predicted actions back into env actions)."""
         self._check(y)
         return y * self.half_range.to(y) + self.centre.to(y)
-
-    def state_dict(self) -> dict[str, torch.Tensor]:
-        """Plain tensors, so the normalizer can live inside checkpoints."""
-        return {"low": self.low.clone(), "high": self.high.clone(), "range_eps": torch.tensor(self.range_eps)}
-
-    @classmethod
-    def from_state_dict(cls, state: Mapping[str, torch.Tensor]) -> Normalizer:
-        return cls(state["low"], state["high"], float(state["range_eps"]))
-
-
-def fit_normalizers(
-    frames: TensorDictBase, keys: Sequence[str] = ("action", "agent_pos"), range_eps: float = RANGE_EPS
-) -> dict[str, Normalizer]:
-    """One :class:`Normalizer` per key, fitted to every row of ``frames`` (fit on training episodes only)."""
-    missing = [key for key in keys if key not in frames.keys()]
-    if missing:
-        raise ValueError(f"frames lack {missing}")
-    return {key: Normalizer.fit(torch.as_tensor(frames[key]), range_eps) for key in keys}
-
-
-def save_normalizers(path: str | Path, normalizers: Mapping[str, Normalizer]) -> None:
-    """Write ``normalizers`` to one file atomically (a reader never sees a half-written file)."""
-    atomic_torch_save({key: normalizer.state_dict() for key, normalizer in normalizers.items()}, path)
-
-
-def load_normalizers(path: str | Path) -> dict[str, Normalizer]:
-    """Read a file written by :func:`save_normalizers`."""
-    states = torch.load(Path(path), weights_only=True)
-    return {key: Normalizer.from_state_dict(state) for key, state in states.items()}
 
 
 def episode_bounds(frames: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -180,14 +157,13 @@ class DemoWindows(Dataset):
     ``frames`` is a TensorDict of steps in storage order (``DemoDataset.frames()`` or one built
     by hand) holding ``episode`` and the configured keys. An item has ``obs/<key>`` of shape
     ``(n_obs_steps, ...)``, ``action`` of shape ``(horizon, A)``, and the ``episode`` id and
-    ``step`` of its current step. Keys with a normalizer are normalized as they are read.
+    ``step`` of its current step. Windows hold raw values: the policy normalizes them.
 
     Example:
         >>> frames = DemoDataset.open("data/hammer").frames()
         >>> held_out = [0, 1]
         >>> train = [i for i in episode_bounds(frames)[0].tolist() if i not in held_out]
-        >>> normalizers = fit_normalizers(frames[torch.isin(frames["episode"], torch.tensor(train))])
-        >>> windows = DemoWindows(frames, WindowConfig(), episodes=train, normalizers=normalizers)
+        >>> windows = DemoWindows(frames, WindowConfig(), episodes=train)
         >>> batch = windows.sample(256, torch.Generator().manual_seed(0))
         >>> batch["obs", "point_cloud"].shape, batch["action"].shape
         (torch.Size([256, 2, 1024, 3]), torch.Size([256, 4, 4]))
@@ -199,17 +175,12 @@ class DemoWindows(Dataset):
         frames: TensorDictBase,
         config: WindowConfig | None = None,
         episodes: Sequence[int] | None = None,
-        normalizers: Mapping[str, Normalizer] | None = None,
     ) -> None:
         self.config = config = config or WindowConfig()
         keys = (*config.obs_keys, config.action_key)
         missing = [key for key in keys if key not in frames.keys()]
         if missing:
             raise ValueError(f"frames lack {missing}")
-        self.normalizers = dict(normalizers or {})
-        unused = [key for key in self.normalizers if key not in keys]
-        if unused:
-            raise ValueError(f"normalizers for {unused}, which are not window keys {list(keys)}")
         self.frames = frames
 
         ids, starts, lengths = episode_bounds(frames)
@@ -241,8 +212,7 @@ class DemoWindows(Dataset):
         return self.current_rows.numel()
 
     def _read(self, key: str, rows: torch.Tensor) -> torch.Tensor:
-        data = self.frames[key][rows]
-        return self.normalizers[key].normalize(data) if key in self.normalizers else data
+        return self.frames[key][rows]
 
     def get(self, indices: torch.Tensor) -> TensorDict:
         """The windows at ``indices`` (1-d), stacked along a leading batch dimension."""

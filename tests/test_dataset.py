@@ -7,15 +7,7 @@ import torch
 from tensordict import TensorDict
 from torch.utils.data import DataLoader
 
-from collectors.dataset import (
-    DemoWindows,
-    Normalizer,
-    WindowConfig,
-    episode_bounds,
-    fit_normalizers,
-    load_normalizers,
-    save_normalizers,
-)
+from collectors.dataset import DemoWindows, Normalizer, WindowConfig, episode_bounds
 from collectors.storage import DemoDataset, EpisodeRecord
 
 EPISODES = {3: 5, 7: 1, 5: 7}  # episode id -> length, stored in this order; ids deliberately not 0, 1, 2
@@ -172,20 +164,6 @@ def test_non_contiguous_episodes_are_refused():
         episode_bounds(frames)
 
 
-def test_windows_are_normalized_when_given_normalizers():
-    frames = make_frames()
-    normalizers = fit_normalizers(frames)
-    raw, normalized = DemoWindows(frames), DemoWindows(frames, normalizers=normalizers)
-    index = torch.arange(len(raw))
-    raw_batch, batch = raw.get(index), normalized.get(index)
-    assert torch.allclose(batch["action"], normalizers["action"].normalize(raw_batch["action"]))
-    assert torch.allclose(batch["obs", "agent_pos"], normalizers["agent_pos"].normalize(raw_batch["obs", "agent_pos"]))
-    assert torch.equal(batch["obs", "point_cloud"], raw_batch["obs", "point_cloud"])
-    assert batch["action"].abs().max() <= 1 and batch["action"][..., 2].eq(0).all()
-    with pytest.raises(ValueError, match="not window keys"):
-        DemoWindows(frames, normalizers={"state": Normalizer.fit(frames["state"])})
-
-
 def test_data_loader_batches_with_torch_stack():
     windows = DemoWindows(make_frames())
     loader = DataLoader(windows, batch_size=4, shuffle=True, collate_fn=torch.stack,
@@ -240,18 +218,16 @@ def test_constant_dimensions_map_to_zero_and_back_exactly():
     assert torch.isfinite(Normalizer.fit(torch.zeros(3, 2)).normalize(torch.ones(2))).all()
 
 
-def test_normalizers_survive_a_save_and_load(tmp_path):
-    frames = make_frames()
-    normalizers = fit_normalizers(frames)
-    assert set(normalizers) == {"action", "agent_pos"}
-    path = tmp_path / "normalizers.pt"
-    save_normalizers(path, normalizers)
-    assert [p.name for p in tmp_path.iterdir()] == ["normalizers.pt"]
-    loaded = load_normalizers(path)
-    for key, normalizer in normalizers.items():
-        assert torch.equal(loaded[key].normalize(frames[key]), normalizer.normalize(frames[key]))
-        restored = Normalizer.from_state_dict(normalizer.state_dict())
-        assert torch.equal(restored.unnormalize(frames[key]), normalizer.unnormalize(frames[key]))
+def test_a_normalizer_s_statistics_travel_in_its_state_dict():
+    """A placeholder of the same shape becomes the fitted map by load_state_dict alone."""
+    data = varied_data()
+    fitted = Normalizer.fit(data)
+    restored = Normalizer.placeholder(data.shape[1])
+    assert not torch.equal(restored.normalize(data), fitted.normalize(data))
+    restored.load_state_dict(fitted.state_dict())
+    assert set(fitted.state_dict()) == {"low", "high", "centre", "half_range"}
+    assert torch.equal(restored.normalize(data), fitted.normalize(data))
+    assert torch.equal(restored.unnormalize(data), fitted.unnormalize(data))
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])

@@ -219,7 +219,7 @@ class Policy(nn.Module):
         self.encoder = ObservationEncoder(config.encoder, state_dim)
         self.net = VelocityNet(config.network, config.horizon, action_dim, self.encoder.out_dim)
         self.expert = make_expert(config)
-        self.normalizers = normalizers
+        self.normalizers = nn.ModuleDict(normalizers)  # their statistics are buffers: in the state dict
         self.reset()
 
     def normalize_observation(self, observation: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -229,8 +229,9 @@ def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, A
     except (KeyError, TypeError) as error:  # a field added or removed since the checkpoint was written
         raise CheckpointError(f"{path} holds a policy configuration this version cannot read ({error!r}); "
                               "train the policy again") from error
-    normalizers = {key: Normalizer.from_state_dict(state) for key, state in payload["normalizers"].items()}
-    try:
+    dims = {"action": payload["action_dim"], config.encoder.state_key: payload["state_dim"], "point_cloud": 3}
+    normalizers = {key: Normalizer.placeholder(dims[key]) for key in normalizer_keys(config)}
+    try:  # the normalizers' statistics come with the weights
         policy = Policy(config, payload["action_dim"], payload["state_dim"], normalizers)
         policy.load_state_dict(payload["ema" if ema else "model"])
     except (ValueError, RuntimeError) as error:  # normalizers or weights of an older version
@@ -345,7 +346,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     world_model_hash = file_sha256(world_model_path) if world_model_path else None
     static = {
         "policy_config": config.policy.to_dict(), "action_dim": policy.action_dim, "state_dim": policy.state_dim,
-        "normalizers": {key: n.state_dict() for key, n in normalizers.items()}, "world_model": world_model_path,
+        "world_model": world_model_path,
         "world_model_sha256": world_model_hash, "tasks": tasks, "env_kwargs": dataset.metadata.tasks,
         "data": str(config.data), "held_out_episodes": held_ids,
         "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "policy"},
