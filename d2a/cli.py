@@ -148,7 +148,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
     config = TrainPolicyConfig.from_preset(
         preset, data=args.data, out=args.out, policy=policy, world_model=args.world_model, eval_every=args.eval_every,
         eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
-        holdout_episodes=args.holdout_episodes, device=args.device, threads=args.threads,
+        holdout_episodes=args.holdout_episodes, device=args.device, threads=args.threads, logger=args.logger,
     )
     _, history = train_policy(config)
     for point in history:
@@ -353,6 +353,8 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--trim-after-success", type=int, default=None, metavar="K",
                               help="keep K frames after each demonstration's first success (-1: all; "
                                    "default: the preset's)")
+    train_policy.add_argument("--logger", default="csv", choices=["csv", "tensorboard", "wandb", "mlflow", ""],
+                              help="TorchRL logger of the scalars under OUT/logs ('': none; default csv)")
     train_policy.add_argument("--holdout-episodes", type=NON_NEGATIVE, default=0,
                               help="hold out the last K episodes of each task for the perception check")
     train_policy.add_argument("--device", default="cpu", help="cpu or cuda (evaluation runs on the CPU)")

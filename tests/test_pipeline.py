@@ -70,6 +70,9 @@ def test_collect_train_evaluate_without_imagination(algo, normalizers, reach_dat
     assert check["windows"] == frames_kept_by_the_cpu_preset(reach_data) < 400  # of 2 x 200 frames
     assert (check["clouds_shuffled"] is None) == (algo == "mp1-state")
     assert [set(row) for row in payload["metrics"]] == [{"step", "mse"}] * 3  # no CFG gate in these variants
+    logged = tmp_path / "logs" / algo / "scalars"  # the same figures, as TorchRL's CSV logger writes them
+    assert (logged / "train" / "mse.csv").read_text().splitlines()[-1].startswith("3,")
+    assert (logged / "success" / "reach.csv").is_file() and (logged / "reliance" / "state.csv").is_file()
     result = evaluate(lambda: load_torchrl_policy(tmp_path / CHECKPOINT_NAME), "reach", 1, seed=5,
                       env_kwargs=eval_env_kwargs(payload, "reach"), progress=False)
     assert len(result.successes) == 1 and len(result.returns) == 1

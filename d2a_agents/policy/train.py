@@ -22,6 +22,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict
+from torchrl.record.loggers import get_logger
 from tqdm import tqdm
 
 from collectors.atomic import exclusive_writer
@@ -48,7 +49,7 @@ CHECKPOINT_KIND = "policy"
 # TrainPolicyConfig fields a resumed run may change (how long, how often, where it runs);
 # every other field must match the checkpoint's, or the resume would mix two runs.
 RESUMABLE_CHANGES = ("out", "steps", "eval_every", "eval_episodes", "eval_workers", "eval_end_on_success",
-                     "checkpoint_every", "device", "threads", "progress")
+                     "checkpoint_every", "device", "threads", "logger", "progress")
 CHECKPOINT_NAME = "policy.pt"
 # Per-step training figures kept in the checkpoint (``metrics``): the unweighted MSE and, with
 # adaptive CFG, the batch means of the gate w and of rho (eq. 7) and the fraction of the batch
@@ -108,6 +109,9 @@ class TrainPolicyConfig:
     seed: int = 0
     device: str = "cpu"  # "cuda" trains on a GPU (evaluation and the checkpoint's policy stay on the CPU)
     threads: int = 0  # torch threads for training; 0: leave torch's setting
+    # TorchRL logger that also receives the scalars (training metrics, success per task, the
+    # perception check) under out/logs: "csv", "tensorboard", "wandb", "mlflow"; "" for none.
+    logger: str = "csv"
     progress: bool = True
 
     @classmethod
@@ -371,9 +375,19 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
             "history": [dataclasses.asdict(point) for point in history], "metrics": metrics, "reliance": reliances,
         })
 
+    logger = get_logger(config.logger, logger_name=str(out / "logs"), experiment_name=config.policy.algo) \
+        if config.logger else None
+
+    def log(values: dict[str, float | None], step: int) -> None:
+        for name, value in values.items():
+            if logger is not None and value is not None:
+                logger.log_scalar(name, float(value), step=step)
+
     def check_perception(step: int) -> None:
         result = reliance(ema, {key: check_batch["obs", key] for key in obs_keys}, check_batch["action"])
         reliances.append({"step": step, "where": check_where, **dataclasses.asdict(result)})
+        log({"reliance/clouds": result.cloud_ratio, "reliance/imagined": result.imagined_ratio,
+             "reliance/state": result.state_ratio}, step)
 
     evaluation_seconds = 0.0
 
@@ -384,6 +398,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
             result = evaluate_checkpoint(path, task, config.eval_episodes, seed=10_000, workers=config.eval_workers,
                                          progress=False, end_on_success=config.eval_end_on_success)
             history.append(EvaluationPoint(step, result.success_rate, result.episodes, task))
+            log({f"success/{task}": result.success_rate}, step)
             bar.write(f"step {step}: {task} success {result.success_rate:.0%} over {result.episodes} episodes")
         evaluation_seconds += time.perf_counter() - started_evaluation
 
@@ -403,6 +418,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
         bar.set_postfix(mse=f"{info['mse']:.4f}")
         done = step + 1
         metrics.append({"step": done, **{key: info[key] for key in LOGGED_METRICS if key in info}})
+        log({f"train/{key}": value for key, value in metrics[-1].items() if key != "step"}, done)
         evaluating = config.eval_episodes > 0 and (
             (config.eval_every and done % config.eval_every == 0) or done == config.steps)
         if evaluating or done == config.steps:
