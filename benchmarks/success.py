@@ -23,7 +23,7 @@ import dataclasses
 import json
 import statistics
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from collectors.atomic import atomic_write_text
@@ -63,6 +63,9 @@ class SuccessBenchConfig:
     world_model_steps: int = 300
     workers: int = 1
     final_seed: int = 100_000  # the extra final evaluation (periodic ones: train_policy's layouts)
+    # gym.make options of the demonstrations (and so of every evaluation), e.g. the dense clouds
+    # {"image_size": 256, "num_points": 4096, "backend": "render"} that the 128x128x32 world model reads.
+    env_kwargs: dict[str, object] = field(default_factory=dict)
 
 
 PRESETS: dict[str, SuccessBenchConfig] = {
@@ -107,7 +110,8 @@ class Cell:
 def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     data = Path(config.workdir) / "data" / task
     if not DemoDataset.is_dataset(data):
-        collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.demos, seed=0))
+        collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.demos, seed=0,
+                              env_kwargs=config.env_kwargs))
     return data
 
 

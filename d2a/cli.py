@@ -230,10 +230,19 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
     from benchmarks.success import PRESETS, run
 
     base = PRESETS[args.preset]
+    env_kwargs = {k: v for k, v in dict(image_size=args.image_size, num_points=args.num_points,
+                                        backend=args.backend).items() if v is not None}
+    world_model = None
+    if args.world_model is not None:
+        from d2a_agents.world_model.triplane import CPU_PRESET, WorldModelConfig
+
+        # cpu: d2a train-wm's cpu preset (128x128x32, point-scatter); demo: the demo's 32x32x8 Conv3d
+        world_model = CPU_PRESET if args.world_model == "cpu" else WorldModelConfig(resolution=(32, 32, 8))
     run(_replace_given(
         base, policy=_replace_given(base.policy, steps=args.steps), tasks=tuple(args.task) if args.task else None,
         algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
-        workdir=args.workdir, workers=args.workers,
+        workdir=args.workdir, workers=args.workers, env_kwargs=env_kwargs or None, world_model=world_model,
+        world_model_steps=args.wm_steps,
     ))
 
 
@@ -442,6 +451,13 @@ def build_parser() -> argparse.ArgumentParser:
     bench_success.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="default: the preset's")
     bench_success.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
     bench_success.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
+    bench_success.add_argument("--image-size", type=POSITIVE, default=None, help="depth image size of the data")
+    bench_success.add_argument("--num-points", type=POSITIVE, default=None, help="points of the env's clouds")
+    bench_success.add_argument("--backend", choices=("raycast", "render"), default=None)
+    bench_success.add_argument("--world-model", choices=("demo", "cpu"), default=None,
+                               help="demo: 32x32x8 Conv3d (the cpu preset's); cpu: d2a train-wm's 128x128x32 "
+                                    "point-scatter (default: the preset's)")
+    bench_success.add_argument("--wm-steps", type=POSITIVE, default=None, help="world-model training steps")
     bench_success.add_argument("--workdir", default="outputs/bench_success",
                                help="data, models and finished cells; a rerun resumes")
     bench_success.set_defaults(func=cmd_bench_success)

@@ -99,6 +99,13 @@ def test_bench_success_options(captured):
     config = captured["config"]
     assert (config.tasks, config.algos, config.seeds, config.policy.steps) == (("push",), ("mp1", "dp3"), (1,), 9)
     assert config.policy.batch_size == 256 and config.evaluations == 5 and config.final_episodes == 100
+    assert config.env_kwargs == {} and config.world_model.resolution == (32, 32, 8)
+    main(["bench", "success", "--image-size", "256", "--num-points", "4096", "--backend", "render",
+          "--world-model", "cpu", "--wm-steps", "1500"])
+    dense = captured["config"]
+    assert dense.env_kwargs == {"image_size": 256, "num_points": 4096, "backend": "render"}
+    assert (dense.world_model.resolution, dense.world_model.encoder, dense.world_model_steps) == (
+        (128, 128, 32), "point-scatter", 1500)
     main(["bench", "success", "--preset", "paper"])
     paper = captured["config"]
     assert paper.seeds == (0, 1, 2) and paper.evaluations == 15 and paper.final_episodes == 100
