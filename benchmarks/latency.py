@@ -91,9 +91,11 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
     if config.world_model is not None:
         dataset = DemoDataset.open_for_training(config.data)
         for points in (None, CPU_POLICY_PRESET.num_points):
-            size = "the data's cloud size" if points is None else f"{points} points"
-            name = f"imagination, trained ({Path(config.world_model).name}), {size}"
-            results[name] = imagination_latency(Path(config.world_model), dataset, config.repeats, points)
+            for grow in (False, True):
+                size = "the data's cloud size" if points is None else f"{points} points"
+                decoding = "grown from the present" if grow else "whole band"
+                name = f"imagination, trained ({Path(config.world_model).name}), {size}, {decoding}"
+                results[name] = imagination_latency(Path(config.world_model), dataset, config.repeats, points, grow)
     print(f"\nbatch 1, {config.num_points} points, {config.threads} thread(s), median of {config.repeats}\n")
     print("| what | network evaluations | median ms |")
     print("| --- | --- | --- |")

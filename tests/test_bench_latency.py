@@ -20,7 +20,7 @@ def test_bench_latency_times_policies_and_world_models(reach_data, tmp_path, cap
                                      world_model=str(world_model), data=reach_data))
     assert {"d2a", "mp1", "dp3", "d2a cpu preset", "imagination 8x8x4, untrained, whole band"} <= set(results)
     trained = [name for name in results if "trained (wm.pt)" in name]
-    assert len(trained) == 2  # the data's cloud size and the policy's point count
+    assert len(trained) == 4  # the data's cloud size and the policy's point count, whole band and grown
     assert all(seconds > 0 for seconds in results.values())
     assert "D2A policy, cpu preset" in capsys.readouterr().out
 

@@ -17,12 +17,14 @@ from d2a_agents.world_model.imagine import Imaginer, occupancy_to_points
 from d2a_envs.sampling import sample_to_size
 
 
-def imagination_latency(checkpoint: Path, dataset: DemoDataset, steps: int, num_points: int | None = None) -> float:
+def imagination_latency(
+    checkpoint: Path, dataset: DemoDataset, steps: int, num_points: int | None = None, grow: bool = True
+) -> float:
     """Median seconds of one imagination (voxelize, encode, decode near the present, FPS to
     ``num_points``; default: the checkpoint's) over ``steps`` stored transitions spread over the
     data set, each with its recorded action history (the decoding follows what the model moves,
-    so the cost depends on the scene and the actions)."""
-    imaginer = Imaginer.from_checkpoint(checkpoint, num_points=num_points)
+    so the cost depends on the scene and the actions; ``grow=False`` decodes the whole band)."""
+    imaginer = Imaginer.from_checkpoint(checkpoint, num_points=num_points, grow=grow)
     frames = dataset.frames()
     config = imaginer.config
     transitions = WorldModelTransitions(frames, imaginer.grid, config.horizon, config.action_history)
