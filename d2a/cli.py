@@ -141,7 +141,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
     preset = _replace_given(POLICY_PRESETS[args.preset], steps=args.steps, batch_size=args.batch_size,
                             learning_rate=args.lr, trim_after_success=args.trim_after_success)
     policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
-                            n_action_steps=args.n_action_steps, num_points=args.num_points,
+                            n_action_steps=args.n_action_steps, num_points=args.policy_points,
                             cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
                             cfg_guidance=args.cfg_guidance, cfg_scale=args.cfg_scale,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
@@ -346,8 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--horizon", type=POSITIVE, default=None, help="action chunk length (default 4)")
     train_policy.add_argument("--n-obs-steps", type=POSITIVE, default=None, help="default 2")
     train_policy.add_argument("--n-action-steps", type=POSITIVE, default=None, help="default 4")
-    train_policy.add_argument("--num-points", type=POSITIVE, default=None,
-                              help="points per cloud fed to the encoder (default: the preset's)")
+    train_policy.add_argument("--policy-points", type=POSITIVE, default=None,
+                              help="points per cloud the encoders read, farthest-point sampled from the data's "
+                                   "clouds (default: the preset's; the env's cloud size is the data's)")
     train_policy.add_argument("--cfg-similarity", choices=("velocity", "prediction"), default=None,
                               help="rho of the adaptive CFG gate: cos(u_cond, u_null) (default) or cos(v, u_null) "
                                    "with v the sampled velocity (MeanFlow's CFG reading)")

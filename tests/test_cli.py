@@ -87,7 +87,7 @@ def test_the_cli_offers_every_policy_variant():
 
 
 def test_train_policy_paper_preset(captured):
-    main(["train-policy", "--data", "d", "--out", "o", "--preset", "paper", "--num-points", "512"])
+    main(["train-policy", "--data", "d", "--out", "o", "--preset", "paper", "--policy-points", "512"])
     config = captured["config"]
     assert (config.steps, config.batch_size, config.learning_rate) == (47_000, 128, 1e-4)
     assert (config.policy.algo, config.policy.num_points, config.policy.encoder.point_widths) == ("d2a", 512,
@@ -130,7 +130,8 @@ def test_abbreviated_options_are_refused(captured, capsys):
     (["eval", "--policy", "p.pt", "--seed", "-1"], "argument --seed: must be at least 0, got -1"),
     (["bench", "envs", "--steps", "0"], "argument --steps: must be at least 1, got 0"),
     (["train-wm", "--data", "d", "--out", "o", "--batch-size", "0"], "argument --batch-size: must be at least 1"),
-    (["train-policy", "--data", "d", "--out", "o", "--num-points", "0"], "argument --num-points: must be at least 1"),
+    (["train-policy", "--data", "d", "--out", "o", "--policy-points", "0"],
+     "argument --policy-points: must be at least 1"),
     (["collect", "--task", "reach", "--out", "o", "--seed", "1.5"], "argument --seed: invalid integer value: '1.5'"),
 ])
 def test_integer_flags_are_checked_before_any_work(captured, capsys, argv, message):

@@ -178,7 +178,7 @@ def test_a_diverging_policy_run_stops_and_keeps_its_last_finite_checkpoint(reach
 
 
 KILLED_RUNS = {  # command, checkpoint inside the output, checkpoint kind, weights compared, total steps
-    "policy": (["train-policy", "--algo", "mp1", "--steps", "400", "--batch-size", "8", "--num-points", "16",
+    "policy": (["train-policy", "--algo", "mp1", "--steps", "400", "--batch-size", "8", "--policy-points", "16",
                 "--eval-episodes", "0"], "policy.pt", "policy", ("model", "ema"), 400),
     "world model": (["train-wm", "--steps", "200", "--batch-size", "2", "--queries", "256", "--validate-every", "200",
                      "--resolution", "16", "16", "8"], "wm.pt", "world_model", ("model",), 200),
