@@ -1,10 +1,10 @@
-"""Scripted-expert success on every Meta-World task, through the D2A env and ``evaluate``.
+"""Expert success (Meta-World's scripted experts, the Adroit planners) through the D2A env and ``evaluate``.
 
 The experts read the simulator state, so the point clouds are made small (64 px, N = 256):
 they cost time and the expert ignores them. For every task below 100 %, the failing
 episodes are run again with a longer limit (same seeds, so the same layouts and, the
 experts being deterministic, the same first 200 steps) and one that still fails is looked
-at: how close the hand got to the object and the object to the goal. Last, the same
+at (Meta-World): how close the hand got to the object and the object to the goal. Last, the same
 episodes are evaluated in one process and with ``workers`` processes, side by side.
 """
 
@@ -22,7 +22,7 @@ from tqdm import tqdm
 import d2a_envs
 from collectors.envs import STATE_KEY, make_torchrl_env
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
-from collectors.experts import ScriptedExpert
+from collectors.experts import expert_env_kwargs, make_expert
 from d2a_envs.tasks import DIFFICULTIES
 
 # Meta-World v3 state layout: hand xyz, gripper opening, first object xyz + quaternion, ...,
@@ -36,7 +36,7 @@ class ExpertBenchConfig:
     """What ``d2a bench experts`` measures.
 
     Attributes:
-        tasks: task names (default: the 50 Meta-World tasks).
+        tasks: task names (default: the 50 Meta-World tasks; Adroit tasks are accepted).
         episodes: episodes per task (seeds ``seed .. seed + episodes - 1``).
         seed: seed of the first episode.
         workers: worker processes of each evaluation.
@@ -62,7 +62,11 @@ class ExpertBenchConfig:
 
 
 def _expert(task: str) -> functools.partial:
-    return functools.partial(ScriptedExpert, task)
+    return functools.partial(make_expert, task)
+
+
+def _env_kwargs(config: ExpertBenchConfig, task: str) -> dict[str, Any]:
+    return {**config.env_kwargs, **expert_env_kwargs(task)}
 
 
 def _distances(task: str, seed: int, config: ExpertBenchConfig) -> str:
@@ -70,7 +74,7 @@ def _distances(task: str, seed: int, config: ExpertBenchConfig) -> str:
     close the hand came to the object and the object to the goal."""
     env = make_torchrl_env(task, {**config.env_kwargs, "max_episode_steps": config.late_max_steps}, seed=seed)
     with torch.no_grad():
-        rollout = env.rollout(config.late_max_steps, ScriptedExpert(task))
+        rollout = env.rollout(config.late_max_steps, make_expert(task))
     env.close()
     assert int(rollout["episode_seed"][0]) == seed
     state = torch.cat([rollout[STATE_KEY][:1], rollout["next", STATE_KEY]])
@@ -92,7 +96,7 @@ def failure_reason(result: EvaluationResult, config: ExpertBenchConfig) -> str:
     """One line on why the expert failed: late successes, else the distances of one failure."""
     failed = [seed for seed, success in zip(result.seeds, result.successes, strict=True) if not success]
     late = evaluate(
-        _expert(result.task), result.task, len(result.seeds), result.seeds[0], config.env_kwargs,
+        _expert(result.task), result.task, len(result.seeds), result.seeds[0], _env_kwargs(config, result.task),
         workers=config.workers, max_steps=config.late_max_steps, progress=False,
     )
     late_steps = dict(zip(late.seeds, late.success_steps, strict=True))
@@ -103,10 +107,10 @@ def failure_reason(result: EvaluationResult, config: ExpertBenchConfig) -> str:
         parts.append(f"late success within {config.late_max_steps} steps ({steps})")
     never = [seed for seed in failed if late_steps[seed] is None]
     if never:
-        parts.append(
-            f"seed(s) {', '.join(map(str, never))} fail even in {config.late_max_steps} steps; "
-            f"seed {never[0]}: {_distances(result.task, never[0], config)}"
-        )
+        seeds = f"seed(s) {', '.join(map(str, never))} fail even in {config.late_max_steps} steps"
+        if d2a_envs.get_task(result.task).suite == "metaworld":  # the distances read Meta-World's state layout
+            seeds += f"; seed {never[0]}: {_distances(result.task, never[0], config)}"
+        parts.append(seeds)
     return "; ".join(parts)
 
 
@@ -114,7 +118,7 @@ def speedup(config: ExpertBenchConfig) -> list[dict[str, object]]:
     """Time the same episodes of ``speedup_task`` in one process and in ``workers``."""
     rows = []
     for episodes in config.speedup_episodes:
-        kwargs = dict(env_kwargs=config.env_kwargs, max_steps=config.max_steps, progress=False)
+        kwargs = dict(env_kwargs=_env_kwargs(config, config.speedup_task), max_steps=config.max_steps, progress=False)
         single = evaluate(_expert(config.speedup_task), config.speedup_task, episodes, config.seed, workers=1, **kwargs)
         parallel = evaluate(
             _expert(config.speedup_task), config.speedup_task, episodes, config.seed, workers=config.workers, **kwargs
@@ -130,7 +134,7 @@ def run(config: ExpertBenchConfig = ExpertBenchConfig()) -> list[dict[str, objec
     results: list[EvaluationResult] = []
     for task in tqdm(config.tasks, desc="tasks", disable=not config.progress):
         result = evaluate(
-            _expert(task), task, config.episodes, config.seed, config.env_kwargs,
+            _expert(task), task, config.episodes, config.seed, _env_kwargs(config, task),
             workers=config.workers, max_steps=config.max_steps, progress=False,
         )
         results.append(result)
@@ -144,7 +148,7 @@ def run(config: ExpertBenchConfig = ExpertBenchConfig()) -> list[dict[str, objec
 
     last_seed = config.seed + config.episodes - 1
     print(
-        f"\nScripted experts, {config.episodes} episodes per task (seeds {config.seed}..{last_seed}),"
+        f"\nExperts, {config.episodes} episodes per task (seeds {config.seed}..{last_seed}),"
         f" {config.max_steps} steps, env {config.env_kwargs}, {config.workers} workers\n"
     )
     print("| task | difficulty | success | mean return | median first-success step |")

@@ -1,4 +1,4 @@
-"""Collect scripted-expert demonstrations with a TorchRL ``Collector`` into a data set on disk.
+"""Collect expert demonstrations (Meta-World's scripted experts, the Adroit planners) with a TorchRL ``Collector`` into a data set on disk.
 
 Episode k of a collection with seed s is reset with seed s + k, so every stored episode is
 reproducible on its own, and a killed collection resumes exactly where it stopped: re-run
@@ -20,7 +20,7 @@ from tqdm import tqdm
 import d2a_envs
 from collectors.atomic import exclusive_writer, holds_only_lock
 from collectors.envs import make_torchrl_env
-from collectors.experts import ScriptedExpert
+from collectors.experts import expert_env_kwargs, make_expert
 from collectors.storage import (
     CollectionRecord,
     DatasetError,
@@ -104,18 +104,19 @@ def _env_kwargs(config: CollectConfig) -> dict[str, Any]:
 
 
 def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> CollectionRecord:
-    """Run the scripted expert on ``task`` until ``config.episodes`` successes are stored."""
+    """Run the expert of ``task`` until ``config.episodes`` successes are stored."""
     spec = d2a_envs.get_task(task)
     record = _collection_for(dataset, spec.name, config)
     collection_index = dataset.metadata.collections.index(record)
     max_attempts = config.episodes * config.max_attempts_factor
     if record.kept >= config.episodes:
         return record
-    env = make_torchrl_env(spec.name, _env_kwargs(config), seed=record.seed + record.attempts)
+    env_kwargs = {**_env_kwargs(config), **expert_env_kwargs(spec.name)}  # the expert's extra input is not stored
+    env = make_torchrl_env(spec.name, env_kwargs, seed=record.seed + record.attempts)
     collector = Collector(
-        env, ScriptedExpert(spec.name), frames_per_batch=config.max_episode_steps,
+        env, make_expert(spec.name), frames_per_batch=config.max_episode_steps,
         trajs_per_batch=1, traj_format="cat", total_frames=-1,
-        auto_register_policy_transforms=False,  # the expert is stateless: leave the env as it is
+        auto_register_policy_transforms=False,  # the expert keeps its own state: leave the env as it is
     )
     bar = tqdm(total=config.episodes, initial=record.kept, desc=f"{spec.name} demos", disable=not config.progress)
     try:
@@ -153,9 +154,8 @@ def collect(config: CollectConfig) -> DemoDataset:
     if config.episodes <= 0:
         raise ValueError(f"episodes must be positive, got {config.episodes}")
     specs = [d2a_envs.get_task(task) for task in config.tasks]  # unknown names fail before any work
-    no_expert = [spec.name for spec in specs if spec.suite != "metaworld"]
-    if no_expert:
-        raise ValueError(f"no scripted expert for {no_expert}: demonstrations can be collected for Meta-World tasks")
+    for spec in specs:
+        make_expert(spec.name)  # a task without an expert fails here
     if config.max_episode_steps < 1 or config.max_attempts_factor < 1:
         raise ValueError("max_episode_steps and max_attempts_factor must be at least 1")
     # Bad env settings (num_points 0, an unknown camera...) fail here, before the output

@@ -1,6 +1,8 @@
-"""Meta-World's scripted experts as a TorchRL policy that reads the simulator state."""
+"""Experts as TorchRL policies: Meta-World's scripted ones, Adroit's planning ones."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 import torch
@@ -9,6 +11,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 import d2a_envs
+from collectors.adroit_experts import AdroitExpert
 from collectors.envs import STATE_KEY
 
 
@@ -42,3 +45,14 @@ class ScriptedExpert(TensorDictModuleBase):
         action = torch.as_tensor(actions, dtype=torch.float32).reshape(*states.shape[:-1], actions.shape[-1])
         tensordict.set(self.out_keys[0], action.to(states.device))
         return tensordict
+
+
+def make_expert(task: str) -> TensorDictModuleBase:
+    """The expert of ``task``: Meta-World's scripted policy or the Adroit planner."""
+    spec = d2a_envs.get_task(task)
+    return AdroitExpert(spec.name) if spec.suite == "adroit" else ScriptedExpert(spec.name)
+
+
+def expert_env_kwargs(task: str) -> dict[str, Any]:
+    """What the env of ``task`` must add for its expert (the Adroit planners read ``physics``)."""
+    return {"physics_obs": True} if d2a_envs.get_task(task).suite == "adroit" else {}

@@ -161,10 +161,11 @@ def cmd_eval(args: argparse.Namespace) -> None:
         import functools
 
         from collectors.evaluation import evaluate
-        from collectors.experts import ScriptedExpert
+        from collectors.experts import expert_env_kwargs, make_expert
 
-        result = evaluate(functools.partial(ScriptedExpert, args.task), args.task, args.episodes, args.seed,
-                          env_kwargs=env_kwargs, workers=args.workers, end_on_success=args.end_on_success)
+        result = evaluate(functools.partial(make_expert, args.task), args.task, args.episodes, args.seed,
+                          env_kwargs={**env_kwargs, **expert_env_kwargs(args.task)}, workers=args.workers,
+                          end_on_success=args.end_on_success)
     else:
         from d2a_agents.policy.train import evaluate_checkpoint
 
@@ -295,7 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_envs.add_argument("--seed", type=NON_NEGATIVE, default=0)
     bench_envs.set_defaults(func=cmd_bench_envs)
 
-    collect = commands.add_parser("collect", help="scripted-expert demonstrations into a data set")
+    collect = commands.add_parser("collect", help="expert demonstrations (Meta-World scripted, Adroit planning) into a data set")
     _add_env_options(collect, several_tasks=True)
     collect.add_argument("--episodes", type=POSITIVE, default=10, help="successful episodes to keep per task")
     collect.add_argument("--out", required=True, help="data set directory")
@@ -375,7 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--seed", type=NON_NEGATIVE, default=0)
     train_policy.set_defaults(func=cmd_train_policy)
 
-    evaluation = commands.add_parser("eval", help="evaluate a policy checkpoint (or the scripted expert)")
+    evaluation = commands.add_parser("eval", help="evaluate a policy checkpoint (or the task's expert)")
     _add_env_options(evaluation)
     evaluation.add_argument("--policy", required=True, help="policy.pt of d2a train-policy, or 'expert'")
     evaluation.add_argument("--episodes", type=POSITIVE, default=100)
@@ -389,7 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
     data_info.add_argument("dir")
     data_info.set_defaults(func=cmd_data_info)
 
-    bench_experts = bench.add_parser("experts", help="scripted-expert success on Meta-World, parallel speed-up")
+    bench_experts = bench.add_parser("experts", help="expert success per task (Meta-World, Adroit), parallel speed-up")
     bench_experts.add_argument("--task", action="append", default=None, help="default: all 50 Meta-World tasks")
     bench_experts.add_argument("--episodes", type=POSITIVE, default=5)
     bench_experts.add_argument("--workers", type=POSITIVE, default=2)

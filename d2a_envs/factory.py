@@ -41,6 +41,7 @@ def make_env(
     with_rgb: bool | None = None,
     show_sites: bool | None = None,
     state_obs: bool = True,
+    physics_obs: bool = False,
     world_model: str | None = None,
     imagined_points: int | None = None,
 ) -> gym.Env:
@@ -52,6 +53,7 @@ def make_env(
     (:class:`~d2a_agents.world_model.observation.ImaginationWrapper`), of
     ``imagined_points`` points (default: ``num_points``; a policy that reads 64 points asks for 64,
     which spares a farthest-point pass over thousands of points at every step).
+    ``physics_obs`` (Adroit) adds the ``physics`` vector that the planning experts read.
     """
     if suite not in _SUITE_ENVS:
         raise ValueError(f"unknown suite {suite!r}; choose one of {sorted(_SUITE_ENVS)}")
@@ -59,7 +61,12 @@ def make_env(
         cameras=cameras, image_size=image_size, num_points=num_points,
         crop_box=crop_box, backend=backend, with_rgb=with_rgb, show_sites=show_sites,
     )
-    env = PointCloudObservation(_SUITE_ENVS[suite](task, state_obs=state_obs), config)
+    suite_kwargs = {"state_obs": state_obs}
+    if physics_obs:  # the planning experts' input: Adroit only
+        if suite != "adroit":
+            raise ValueError(f"physics_obs is available for Adroit tasks, not {suite}")
+        suite_kwargs["physics_obs"] = True
+    env = PointCloudObservation(_SUITE_ENVS[suite](task, **suite_kwargs), config)
     if imagined_points is not None and world_model is None:
         raise ValueError("imagined_points needs a world_model")
     if world_model is not None:

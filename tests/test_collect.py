@@ -77,8 +77,8 @@ def test_existing_output_is_refused_without_append_or_overwrite(reach_dataset, t
 
 
 def test_tasks_without_an_expert_are_refused_before_any_file_is_written(tmp_path):
-    with pytest.raises(ValueError, match="no scripted expert"):
-        collect(config(tmp_path / "adroit", tasks=("adroit-door",)))
+    with pytest.raises(ValueError, match="no planning expert"):
+        collect(config(tmp_path / "adroit", tasks=("reach", "adroit-pen")))
     with pytest.raises(ValueError, match="unknown task"):
         collect(config(tmp_path / "typo", tasks=("hamer",)))
     assert not (tmp_path / "adroit").exists() and not (tmp_path / "typo").exists()

@@ -1,0 +1,112 @@
+"""Adroit experts: predictive sampling on a replica of the scene, with hand-written costs.
+
+Nothing can be downloaded here (DP3 and MP1 use pretrained VRL3 agents), so the Adroit
+demonstrations come from model-predictive control on the true simulator: the expert reads
+the env's ``physics`` observation (full MuJoCo state and the reset's layout), copies it into
+its own replica and plans the next action (:mod:`collectors.predictive_sampling`). The costs
+are this module's own: gymnasium-robotics' dense rewards add +0.1 x the palm's distance to
+the handle or hammer, which rewards staying away.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+import d2a_envs
+from collectors.predictive_sampling import PredictiveSampler, SamplingConfig, TaskCost, Trajectories
+from d2a_envs.suites.adroit import AdroitEnv, set_physics
+
+PHYSICS_KEY = "physics"
+
+
+def _distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(a - b, axis=-1)
+
+
+def _effort(t: Trajectories) -> np.ndarray:
+    return 0.01 * (t.actions**2).mean(axis=(1, 2))
+
+
+def _door_cost(model) -> TaskCost:
+    hinge, latch = model.joint("door_hinge").qposadr[0], model.joint("latch").qposadr[0]
+
+    def score(t: Trajectories) -> np.ndarray:
+        reach = _distance(t.sites[:, :, 0], t.sites[:, :, 1]).mean(1)  # palm to handle
+        unlatched = np.clip(1.2 - t.qpos[:, :, latch], 0.0, None).mean(1)  # turn the handle
+        opened = (1.57 - t.qpos[:, :, hinge]).mean(1)  # swing the door
+        return reach + 0.5 * unlatched + 2.0 * opened + _effort(t)
+
+    return TaskCost(sites=("S_grasp", "S_handle"), bodies=(), score=score)
+
+
+def _hammer_cost(model) -> TaskCost:
+    def score(t: Trajectories) -> np.ndarray:
+        palm, head, nail, goal = (t.sites[:, :, i] for i in range(4))
+        grasp = _distance(palm, t.bodies[:, :, 0]).mean(1)  # palm to the hammer
+        strike = _distance(head, nail).mean(1)  # hammer head to the nail
+        drive = _distance(nail, goal).mean(1)  # nail into the board
+        return grasp + strike + 10.0 * drive + _effort(t)
+
+    return TaskCost(sites=("S_grasp", "tool", "S_target", "nail_goal"), bodies=("Object",), score=score)
+
+
+# Per task: the cost and the sampling settings (measured in docs/environments.md).
+EXPERTS = {
+    "door": (_door_cost, SamplingConfig(horizon=16, knots=4, samples=32, sigma=0.3)),
+    "hammer": (_hammer_cost, SamplingConfig(horizon=16, knots=4, samples=32, sigma=0.3)),
+}
+
+
+class AdroitExpert(TensorDictModuleBase):
+    """The planning expert of one Adroit task, as a TorchRL policy.
+
+    Reads ``physics`` (make the env with ``physics_obs=True``), ``step_count`` and
+    ``episode_seed`` (:func:`collectors.envs.make_torchrl_env` provides both) and writes
+    ``action``. Each episode re-seeds the planner from its episode seed, so a seed gives the
+    same demonstration. Works on unbatched and batched tensordicts (a planner per env).
+
+    Example:
+        >>> env = make_torchrl_env("adroit-door", {"physics_obs": True}, seed=0)
+        >>> rollout = env.rollout(200, AdroitExpert("adroit-door"))
+        >>> bool(rollout["next", "success"].any())
+        True
+    """
+
+    def __init__(self, task: str) -> None:
+        super().__init__()
+        spec = d2a_envs.get_task(task)
+        if spec.suite != "adroit" or spec.task not in EXPERTS:
+            raise ValueError(f"no planning expert for {spec.env_id}: experts exist for {sorted(EXPERTS)}")
+        self.task = spec.task
+        self.in_keys = [PHYSICS_KEY, "step_count", "episode_seed"]
+        self.out_keys = ["action"]
+        self._replicas: list[tuple[AdroitEnv, PredictiveSampler]] = []
+
+    def _replica(self, index: int) -> tuple[AdroitEnv, PredictiveSampler]:
+        while len(self._replicas) <= index:
+            scene = AdroitEnv(self.task, state_obs=False)
+            make_cost, config = EXPERTS[self.task]
+            mean, scale = scene.action_map
+            planner = PredictiveSampler(scene.model, scene.frame_skip, mean, scale, make_cost(scene.model), config)
+            self._replicas.append((scene, planner))
+        return self._replicas[index]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        physics = tensordict.get(PHYSICS_KEY)
+        batch = physics.shape[:-1]
+        flat = physics.reshape(-1, physics.shape[-1]).detach().cpu().numpy().astype(np.float64)
+        steps = tensordict.get("step_count").reshape(-1).tolist()
+        seeds = tensordict.get("episode_seed").reshape(-1).tolist()
+        actions = []
+        for index, (vector, step, seed) in enumerate(zip(flat, steps, seeds)):
+            scene, planner = self._replica(index)
+            set_physics(scene.model, scene.data, self.task, vector)
+            if step == 0:
+                planner.reset(scene.data, seed=int(seed))
+            actions.append(planner.plan(scene.data)[0])
+        action = torch.as_tensor(np.stack(actions), dtype=torch.float32).reshape(*batch, -1)
+        tensordict.set(self.out_keys[0], action.to(physics.device))
+        return tensordict
