@@ -101,7 +101,7 @@ class AdroitExpert(TensorDictModuleBase):
         steps = tensordict.get("step_count").reshape(-1).tolist()
         seeds = tensordict.get("episode_seed").reshape(-1).tolist()
         actions = []
-        for index, (vector, step, seed) in enumerate(zip(flat, steps, seeds)):
+        for index, (vector, step, seed) in enumerate(zip(flat, steps, seeds, strict=True)):
             scene, planner = self._replica(index)
             set_physics(scene.model, scene.data, self.task, vector)
             if step == 0:

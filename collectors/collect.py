@@ -1,4 +1,6 @@
-"""Collect expert demonstrations (Meta-World's scripted experts, the Adroit planners) with a TorchRL ``Collector`` into a data set on disk.
+"""Collect expert demonstrations with a TorchRL ``Collector`` into a data set on disk.
+
+The experts: Meta-World's scripted policies, the Adroit planners (:mod:`collectors.adroit_experts`).
 
 Episode k of a collection with seed s is reset with seed s + k, so every stored episode is
 reproducible on its own, and a killed collection resumes exactly where it stopped: re-run

@@ -296,7 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_envs.add_argument("--seed", type=NON_NEGATIVE, default=0)
     bench_envs.set_defaults(func=cmd_bench_envs)
 
-    collect = commands.add_parser("collect", help="expert demonstrations (Meta-World scripted, Adroit planning) into a data set")
+    collect = commands.add_parser("collect", help="expert demonstrations (scripted or planning) into a data set")
     _add_env_options(collect, several_tasks=True)
     collect.add_argument("--episodes", type=POSITIVE, default=10, help="successful episodes to keep per task")
     collect.add_argument("--out", required=True, help="data set directory")

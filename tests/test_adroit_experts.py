@@ -128,3 +128,16 @@ def test_experts_are_picked_per_suite_and_unknown_ones_refused():
         from collectors.experts import ScriptedExpert
 
         ScriptedExpert("adroit-door")
+
+
+def test_collect_stores_adroit_demonstrations_without_the_planner_input(tmp_path):
+    from collectors.collect import CollectConfig, collect
+    from collectors.storage import DemoDataset
+
+    config = CollectConfig(tasks=("adroit-hammer",), out=str(tmp_path / "hammer"), episodes=1, max_attempts_factor=1,
+                           max_episode_steps=30, env_kwargs=SMALL_ENV_KWARGS, progress=False)
+    dataset = DemoDataset.open(collect(config).directory)
+    episode = dataset.episode(0)
+    assert dataset.metadata.episodes[0].success and bool(episode["success"].any())
+    assert episode["action"].shape == (30, 26) and episode["agent_pos"].shape == (30, 26)
+    assert "physics" not in episode.keys() and "physics_obs" not in dataset.metadata.tasks["adroit-hammer"]
