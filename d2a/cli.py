@@ -91,10 +91,11 @@ def cmd_bench_envs(args: argparse.Namespace) -> None:
 def cmd_collect(args: argparse.Namespace) -> None:
     from collectors.collect import CollectConfig, collect
 
-    config = CollectConfig(
-        tasks=tuple(args.task), out=args.out, episodes=args.episodes, seed=args.seed,
-        max_attempts_factor=args.max_attempts_factor, max_episode_steps=args.max_episode_steps,
-        env_kwargs=_env_kwargs(args), append=args.append, overwrite=args.overwrite,
+    config = _replace_given(
+        CollectConfig(tasks=tuple(args.task), out=args.out, env_kwargs=_env_kwargs(args), append=args.append,
+                      overwrite=args.overwrite),
+        episodes=args.episodes, seed=args.seed, max_attempts_factor=args.max_attempts_factor,
+        max_episode_steps=args.max_episode_steps,
     )
     dataset = collect(config)
     print(f"wrote {dataset.num_frames} steps in {len(dataset.metadata.episodes)} episodes to {dataset.directory}")
@@ -114,10 +115,10 @@ def cmd_train_wm(args: argparse.Namespace) -> None:
     model = _replace_given(base, horizon=args.horizon, action_history=args.history, channels=args.channels,
                            feature_mode=args.feature_mode, plane_pooling=args.plane_pooling, encoder=args.encoder,
                            resolution=tuple(args.resolution) if args.resolution else None)
-    config = TrainWorldModelConfig(
-        data=args.data, out=args.out, model=model, steps=args.steps, batch_size=args.batch_size,
-        learning_rate=args.lr, queries=args.queries, validate_every=args.validate_every, seed=args.seed,
-        device=args.device, threads=args.threads,
+    config = _replace_given(
+        TrainWorldModelConfig(data=args.data, out=args.out, model=model), steps=args.steps,
+        batch_size=args.batch_size, learning_rate=args.lr, queries=args.queries, validate_every=args.validate_every,
+        seed=args.seed, device=args.device, threads=args.threads,
     )
     _, history = train_world_model(config)
     if history:
@@ -145,9 +146,10 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                             cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
                             cfg_guidance=args.cfg_guidance, cfg_scale=args.cfg_scale,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
-    config = TrainPolicyConfig.from_preset(
-        preset, data=args.data, out=args.out, policy=policy, world_model=args.world_model, eval_every=args.eval_every,
-        eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
+    config = _replace_given(
+        TrainPolicyConfig.from_preset(preset, data=args.data, out=args.out, policy=policy,
+                                      world_model=args.world_model),
+        eval_every=args.eval_every, eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
         holdout_episodes=args.holdout_episodes, device=args.device, threads=args.threads, logger=args.logger,
     )
     _, history = train_policy(config)
@@ -298,10 +300,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     collect = commands.add_parser("collect", help="expert demonstrations (scripted or planning) into a data set")
     _add_env_options(collect, several_tasks=True)
-    collect.add_argument("--episodes", type=POSITIVE, default=10, help="successful episodes to keep per task")
+    collect.add_argument("--episodes", type=POSITIVE, default=None, help="successful episodes to keep per task")
     collect.add_argument("--out", required=True, help="data set directory")
-    collect.add_argument("--max-attempts-factor", type=POSITIVE, default=3, help="give up after episodes x this")
-    collect.add_argument("--max-episode-steps", type=POSITIVE, default=200)
+    collect.add_argument("--max-attempts-factor", type=POSITIVE, default=None, help="give up after episodes x this")
+    collect.add_argument("--max-episode-steps", type=POSITIVE, default=None)
     mode = collect.add_mutually_exclusive_group()
     mode.add_argument("--append", action="store_true", help="add to (or resume) an existing data set")
     mode.add_argument("--overwrite", action="store_true", help="replace an existing data set")
@@ -322,14 +324,14 @@ def build_parser() -> argparse.ArgumentParser:
     train_wm.add_argument("--encoder", choices=("volume-conv", "point-scatter"), default=None,
                           help="volume-conv: Conv3d over the grid (the paper); point-scatter: per-voxel MLP "
                                "scattered onto the planes, cost follows the occupied voxels")
-    train_wm.add_argument("--steps", type=POSITIVE, default=2000)
-    train_wm.add_argument("--batch-size", type=POSITIVE, default=4)
-    train_wm.add_argument("--lr", type=float, default=1e-3)
-    train_wm.add_argument("--queries", type=POSITIVE, default=8192)
-    train_wm.add_argument("--validate-every", type=POSITIVE, default=500)
-    train_wm.add_argument("--seed", type=NON_NEGATIVE, default=0)
-    train_wm.add_argument("--device", default="cpu", help="cpu or cuda")
-    train_wm.add_argument("--threads", type=NON_NEGATIVE, default=0, help="torch threads (0: torch's default)")
+    train_wm.add_argument("--steps", type=POSITIVE, default=None)
+    train_wm.add_argument("--batch-size", type=POSITIVE, default=None)
+    train_wm.add_argument("--lr", type=float, default=None)
+    train_wm.add_argument("--queries", type=POSITIVE, default=None)
+    train_wm.add_argument("--validate-every", type=POSITIVE, default=None)
+    train_wm.add_argument("--seed", type=NON_NEGATIVE, default=None)
+    train_wm.add_argument("--device", default=None, help="cpu or cuda")
+    train_wm.add_argument("--threads", type=NON_NEGATIVE, default=None, help="torch threads (0: torch's own)")
     train_wm.set_defaults(func=cmd_train_wm)
 
     train_policy = commands.add_parser("train-policy", help="train a policy (d2a, mp1, dp3, ablations)")
@@ -364,16 +366,16 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--trim-after-success", type=int, default=None, metavar="K",
                               help="keep K frames after each demonstration's first success (-1: all; "
                                    "default: the preset's)")
-    train_policy.add_argument("--logger", default="csv", choices=["csv", "tensorboard", "wandb", "mlflow", ""],
+    train_policy.add_argument("--logger", default=None, choices=["csv", "tensorboard", "wandb", "mlflow", ""],
                               help="TorchRL logger of the scalars under OUT/logs ('': none; default csv)")
-    train_policy.add_argument("--holdout-episodes", type=NON_NEGATIVE, default=0,
+    train_policy.add_argument("--holdout-episodes", type=NON_NEGATIVE, default=None,
                               help="hold out the last K episodes of each task for the perception check")
-    train_policy.add_argument("--device", default="cpu", help="cpu or cuda (evaluation runs on the CPU)")
-    train_policy.add_argument("--threads", type=NON_NEGATIVE, default=0, help="torch threads (0: torch's default)")
-    train_policy.add_argument("--eval-every", type=NON_NEGATIVE, default=0, help="0: evaluate at the end only")
-    train_policy.add_argument("--eval-episodes", type=NON_NEGATIVE, default=20)
-    train_policy.add_argument("--workers", type=POSITIVE, default=1)
-    train_policy.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    train_policy.add_argument("--device", default=None, help="cpu or cuda (evaluation runs on the CPU)")
+    train_policy.add_argument("--threads", type=NON_NEGATIVE, default=None, help="torch threads (0: torch's own)")
+    train_policy.add_argument("--eval-every", type=NON_NEGATIVE, default=None, help="0: evaluate at the end only")
+    train_policy.add_argument("--eval-episodes", type=NON_NEGATIVE, default=None)
+    train_policy.add_argument("--workers", type=POSITIVE, default=None)
+    train_policy.add_argument("--seed", type=NON_NEGATIVE, default=None)
     train_policy.set_defaults(func=cmd_train_policy)
 
     evaluation = commands.add_parser("eval", help="evaluate a policy checkpoint (or the task's expert)")
@@ -407,7 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_train = bench.add_parser("train", help="policy training throughput (samples/s) per preset and variant")
     bench_train.add_argument("--steps", type=POSITIVE, default=None, help="timed steps per row (default 30)")
     bench_train.add_argument("--threads", type=POSITIVE, default=None, help="torch threads (default 1)")
-    bench_train.add_argument("--device", default=None, help="cpu (default) or cuda")
+    bench_train.add_argument("--device", default=None, help="cpu or cuda")
     bench_train.set_defaults(func=cmd_bench_train)
 
     bench_ablate = bench.add_parser("ablate", help="one change to the cpu policy preset: train, perception check, "

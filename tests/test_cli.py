@@ -139,3 +139,28 @@ def test_integer_flags_are_checked_before_any_work(captured, capsys, argv, messa
         main(argv)
     assert stopped.value.code == 2 and message in capsys.readouterr().err
     assert "config" not in captured  # the command never ran
+
+
+def test_defaults_live_in_the_configs_alone(captured, monkeypatch):
+    """With only the required options, each command builds exactly its config's defaults."""
+    import collectors.collect
+    from collectors.collect import CollectConfig
+    from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig
+    from d2a_agents.world_model.train import TrainWorldModelConfig
+
+    main(["train-wm", "--data", "d", "--out", "o.pt"])
+    assert captured["config"] == TrainWorldModelConfig(data="d", out="o.pt")
+    main(["train-policy", "--data", "d", "--out", "o"])
+    assert captured["config"] == TrainPolicyConfig.from_preset(POLICY_PRESETS["cpu"], data="d", out="o")
+
+    class Stop(Exception):
+        pass
+
+    def collect(config):
+        captured["config"] = config
+        raise Stop
+
+    monkeypatch.setattr(collectors.collect, "collect", collect)
+    with pytest.raises(Stop):
+        main(["collect", "--task", "reach", "--out", "o"])
+    assert captured["config"] == CollectConfig(tasks=("reach",), out="o")
