@@ -20,7 +20,8 @@ from pathlib import Path
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import honest_protocol
 from d2a_agents.checkpoint import load_checkpoint
-from d2a_agents.policy.train import CHECKPOINT_NAME, TrainPolicyConfig, evaluate_checkpoint, train_policy
+from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, evaluate_checkpoint
+from d2a_agents.policy.train import TrainPolicyConfig, train_policy
 
 
 def _policy(**changes: object) -> Callable[[TrainPolicyConfig], TrainPolicyConfig]:

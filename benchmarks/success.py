@@ -31,14 +31,8 @@ from collectors.collect import CollectConfig, collect
 from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.storage import DemoDataset
 from d2a_agents.policy.agent import uses_imagination
-from d2a_agents.policy.train import (
-    CHECKPOINT_NAME,
-    POLICY_PRESETS,
-    PolicyPreset,
-    TrainPolicyConfig,
-    evaluate_checkpoint,
-    train_policy,
-)
+from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, evaluate_checkpoint
+from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
 from d2a_agents.world_model.triplane import WorldModelConfig
 

@@ -169,7 +169,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                           env_kwargs={**env_kwargs, **expert_env_kwargs(args.task)}, workers=args.workers,
                           end_on_success=args.end_on_success)
     else:
-        from d2a_agents.policy.train import evaluate_checkpoint
+        from d2a_agents.policy.checkpoints import evaluate_checkpoint
 
         if env_kwargs:
             raise ValueError(f"{args.policy} is evaluated in the env it was trained with; "

@@ -13,14 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from collectors.collect import CollectConfig, collect
-from d2a_agents.policy.train import (
-    CHECKPOINT_NAME,
-    POLICY_PRESETS,
-    PolicyPreset,
-    TrainPolicyConfig,
-    evaluate_checkpoint,
-    train_policy,
-)
+from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, evaluate_checkpoint
+from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
 from d2a_agents.training_plots import plot_training_curves
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
 from d2a_agents.world_model.triplane import WorldModelConfig

@@ -14,16 +14,15 @@ from collectors.evaluation import evaluate
 from collectors.storage import DemoDataset
 from d2a_agents.checkpoint import CheckpointError, load_checkpoint
 from d2a_agents.policy.agent import PolicyConfig
-from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
-from d2a_agents.policy.train import (
+from d2a_agents.policy.checkpoints import (
     CHECKPOINT_NAME,
-    TrainPolicyConfig,
     eval_env_kwargs,
     evaluate_checkpoint,
     load_policy,
     load_torchrl_policy,
-    train_policy,
 )
+from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
+from d2a_agents.policy.train import TrainPolicyConfig, train_policy
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
 from d2a_agents.world_model.triplane import WorldModelConfig
 

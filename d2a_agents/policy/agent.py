@@ -199,7 +199,7 @@ class Policy(nn.Module):
     chunk (:meth:`predict_action_chunk`) when the queue is empty.
 
     Example:
-        >>> policy, _ = load_policy("runs/hammer/mp1/policy.pt")   # d2a_agents.policy.train
+        >>> policy, _ = load_policy("runs/hammer/mp1/policy.pt")   # d2a_agents.policy.checkpoints
         >>> observation, _ = env.reset(seed=0); policy.reset(seed=0)
         >>> action = policy.select_action(observation)           # (A,) float32, env units
         >>> window = {"point_cloud": clouds, "agent_pos": positions}  # (B, n_obs, N, 3), (B, n_obs, 4)

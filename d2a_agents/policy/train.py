@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import functools
 import math
 import time
 from dataclasses import dataclass
@@ -27,30 +26,26 @@ from tqdm import tqdm
 
 from collectors.atomic import exclusive_writer
 from collectors.dataset import DemoWindows, Normalizer, WindowConfig, episode_bounds
-from collectors.evaluation import EvaluationResult, evaluate
 from collectors.storage import DemoDataset
-from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint, load_for_resume, save_checkpoint
+from d2a_agents.checkpoint import CheckpointError, file_sha256, load_for_resume, save_checkpoint
 from d2a_agents.policy.agent import (
     CPU_POLICY_PRESET,
     IMAGINED_KEY,
     Policy,
     PolicyConfig,
-    TorchRLPolicy,
     normalizer_keys,
     subsample_cloud,
     uses_imagination,
 )
+from d2a_agents.policy.checkpoints import CHECKPOINT_KIND, CHECKPOINT_NAME, evaluate_checkpoint, imaginer_tasks
 from d2a_agents.policy.perception import Reliance, reliance
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import Imaginer
-from d2a_envs.tasks import get_task
 
-CHECKPOINT_KIND = "policy"
 # TrainPolicyConfig fields a resumed run may change (how long, how often, where it runs);
 # every other field must match the checkpoint's, or the resume would mix two runs.
 RESUMABLE_CHANGES = ("out", "steps", "eval_every", "eval_episodes", "eval_workers", "eval_end_on_success",
                      "checkpoint_every", "device", "threads", "logger", "progress")
-CHECKPOINT_NAME = "policy.pt"
 # Per-step training figures kept in the checkpoint (``metrics``): the unweighted MSE and, with
 # adaptive CFG, the batch means of the gate w and of rho (eq. 7) and the fraction of the batch
 # whose target the gate changes (w < 1), to see what the gate does.
@@ -218,68 +213,6 @@ def fit_policy_normalizers(frames: TensorDict, config: PolicyConfig) -> dict[str
     return {**normalizers, **{key: Normalizer.fit(value) for key, value in data.items()}}
 
 
-def policy_file(path: str | Path) -> Path:
-    """The checkpoint a path names: the file itself, or a run directory's ``policy.pt``."""
-    path = Path(path)
-    return path / CHECKPOINT_NAME if path.is_dir() else path
-
-
-def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, Any]]:
-    """The policy of a checkpoint (a file or a run directory; EMA weights by default) and its metadata."""
-    path = policy_file(path)
-    payload = load_checkpoint(path, CHECKPOINT_KIND)
-    try:
-        config = PolicyConfig.from_dict(payload["policy_config"])
-    except (KeyError, TypeError) as error:  # a field added or removed since the checkpoint was written
-        raise CheckpointError(f"{path} holds a policy configuration this version cannot read ({error!r}); "
-                              "train the policy again") from error
-    dims = {"action": payload["action_dim"], config.encoder.state_key: payload["state_dim"], "point_cloud": 3}
-    normalizers = {key: Normalizer.placeholder(dims[key]) for key in normalizer_keys(config)}
-    try:  # the normalizers' statistics come with the weights
-        policy = Policy(config, payload["action_dim"], payload["state_dim"], normalizers)
-        policy.load_state_dict(payload["ema" if ema else "model"])
-    except (ValueError, RuntimeError) as error:  # normalizers or weights of an older version
-        raise CheckpointError(f"{path} was written by another version of the policy ({error}); "
-                              "train the policy again") from error
-    return policy.eval(), payload
-
-
-def load_torchrl_policy(path: str | Path) -> TorchRLPolicy:
-    """A checkpoint's EMA policy as a TorchRL policy (a picklable factory for eval workers)."""
-    return TorchRLPolicy(load_policy(path)[0])
-
-
-def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
-    """The env settings the policy was trained with, plus its world model when it imagines."""
-    kwargs = {k: v for k, v in payload["env_kwargs"][task].items() if k != "max_episode_steps"}
-    world_model = payload["world_model"]
-    if world_model is not None:
-        if not Path(world_model).is_file():
-            raise CheckpointError(f"the policy's world model {world_model} is missing")
-        if file_sha256(world_model) != payload.get("world_model_sha256"):
-            raise CheckpointError(f"the policy's world model {world_model} has changed since the policy was trained")
-        kwargs["world_model"] = world_model
-        kwargs["imagined_points"] = payload["policy_config"]["num_points"]  # what the policy reads
-    return kwargs
-
-
-def evaluate_checkpoint(
-    path: str | Path, task: str, episodes: int, seed: int, workers: int = 1, progress: bool = True,
-    end_on_success: bool = False,
-) -> EvaluationResult:
-    """Evaluate a checkpoint's EMA policy on ``task`` in the env it was trained with (its
-    point-cloud settings, its world model when it imagines); a task it was not trained on,
-    or a checkpoint it cannot read, is refused before any worker starts. ``end_on_success``:
-    see :func:`~collectors.evaluation.evaluate`."""
-    _, payload = load_policy(path)
-    name = get_task(task).name
-    if name not in payload["env_kwargs"]:
-        raise ValueError(f"{path} was trained on {payload['tasks']}, not on {name}")
-    return evaluate(functools.partial(load_torchrl_policy, path), name, episodes, seed,
-                    env_kwargs=eval_env_kwargs(payload, name), workers=workers, progress=progress,
-                    end_on_success=end_on_success)
-
-
 def training_step(
     policy: Policy, optimizer: torch.optim.Optimizer, windows: DemoWindows, batch_size: int,
     generator: torch.Generator,
@@ -439,10 +372,3 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
         print("perception check, " + Reliance(**{k: v for k, v in reliances[-1].items()
                                                  if k not in ("step", "where")}).summary(reliances[-1]["where"]))
     return ema.cpu().eval(), history
-
-
-def imaginer_tasks(world_model: str | Path) -> list[str]:
-    """Tasks a world-model checkpoint was trained on."""
-    from d2a_agents.world_model.imagine import CHECKPOINT_KIND as WORLD_MODEL_KIND
-
-    return load_checkpoint(world_model, WORLD_MODEL_KIND)["tasks"]
