@@ -32,10 +32,17 @@ PREVIOUS_CPU_PRESET = PolicyPreset(
 )
 
 
+def _cpu_preset_encoder(**changes: object) -> PolicyPreset:
+    """The cpu preset with its encoder changed."""
+    policy = POLICY_PRESETS["cpu"].policy
+    encoder = dataclasses.replace(policy.encoder, **changes)
+    return dataclasses.replace(POLICY_PRESETS["cpu"], policy=dataclasses.replace(policy, encoder=encoder))
+
+
 # The cpu preset with its per-point MLP in float32 (the preset runs it in bfloat16).
-FLOAT32_POINTS_CPU_PRESET = dataclasses.replace(POLICY_PRESETS["cpu"], policy=dataclasses.replace(
-    POLICY_PRESETS["cpu"].policy, encoder=dataclasses.replace(POLICY_PRESETS["cpu"].policy.encoder,
-                                                              point_dtype="float32")))
+FLOAT32_POINTS_CPU_PRESET = _cpu_preset_encoder(point_dtype="float32")
+# The cpu preset encoding the imagined cloud of both observation steps (the preset: the latest).
+EVERY_IMAGINED_CPU_PRESET = _cpu_preset_encoder(imagined_steps=2)
 
 
 @dataclass(frozen=True)
@@ -47,6 +54,7 @@ class TrainBenchConfig:
         ("cpu, float32 point MLP", FLOAT32_POINTS_CPU_PRESET, "mp1"),
         ("cpu", POLICY_PRESETS["cpu"], "mp1"),
         ("cpu, float32 point MLP", FLOAT32_POINTS_CPU_PRESET, "d2a"),
+        ("cpu, both imagined frames", EVERY_IMAGINED_CPU_PRESET, "d2a"),
         ("cpu", POLICY_PRESETS["cpu"], "d2a"),
         ("cpu", POLICY_PRESETS["cpu"], "dp3"),
         ("cpu", POLICY_PRESETS["cpu"], "mp1-state"),

@@ -128,6 +128,29 @@ def test_the_present_control_feeds_the_current_cloud_to_its_second_encoder():
     assert not torch.allclose(shown["imagined_point_cloud"], shown["point_cloud"])  # an explicit copy wins
 
 
+@pytest.mark.parametrize("imagined_steps", [1, 2])
+def test_the_imagined_encoder_reads_the_latest_imagined_clouds(imagined_steps):
+    """With imagined_steps = 1 (the paper's one P_{t+H}) only the latest imagined cloud enters
+    the condition; with 2 the older one does too."""
+    from d2a_agents.policy.networks import ObservationEncoder
+
+    config = EncoderConfig(point_widths=(8,), imagined_steps=imagined_steps)
+    torch.manual_seed(0)
+    encoder = ObservationEncoder(config, state_dim=4)
+    observation = {"point_cloud": torch.rand(3, 2, 16, 3), "agent_pos": torch.rand(3, 2, 4),
+                   "imagined_point_cloud": torch.rand(3, 2, 16, 3)}
+    features = encoder(observation)
+    assert features.shape == (3, (2 * 2 + imagined_steps) * config.embed_dim) == (3, encoder.out_dim)
+    older, latest = (observation["imagined_point_cloud"].clone() for _ in range(2))
+    older[:, 0] += 1.0
+    latest[:, 1] += 1.0
+    assert not torch.allclose(encoder({**observation, "imagined_point_cloud": latest}), features)
+    moved_older = encoder({**observation, "imagined_point_cloud": older})
+    assert torch.allclose(moved_older, features) == (imagined_steps == 1)
+    with pytest.raises(ValueError, match="imagined_steps"):
+        EncoderConfig(imagined_steps=3)
+
+
 def test_a_policy_without_its_normalizers_is_refused():
     normalizers = unit_normalizers()
     del normalizers["point_cloud"]

@@ -5,7 +5,8 @@ LayerNorm + ReLU, max-pooled over points and projected to 64 (then LayerNorm, as
 encoder ends), one for the current and one for the imagined cloud; an MLP for the
 low-dimensional observation (the robot's ``agent_pos``, or the simulator's full ``state`` for
 the privileged reference, which then has no cloud at all); the last ``n_obs_steps``
-observations of each are concatenated into the condition f_c. Clouds arrive normalized
+observations of each, and the imagined cloud of the latest (the paper's one P_{t+H}), are
+concatenated into the condition f_c. Clouds arrive normalized
 (per axis to [-1, 1], by the policy's normalizer).
 
 The velocity network u(z, r, t | c) maps a noisy action chunk z (B, T, A), two times r <= t
@@ -43,10 +44,16 @@ class EncoderConfig:
     # autocast (weights, max-pool output and projection stay float32). 1.4x faster on a CPU
     # with native bf16 (AVX512-BF16 / AMX; `d2a bench train`), slower on one without.
     point_dtype: str = "float32"
+    # Imagined clouds read, from the latest observation backwards: the paper conditions on one
+    # imagined cloud, P_{t+H} (1); n_obs_steps reads every observation's (a cloud encoding each).
+    imagined_steps: int = 1
 
     def __post_init__(self) -> None:
         if self.point_dtype not in POINT_DTYPES:
             raise ValueError(f"point_dtype must be one of {tuple(POINT_DTYPES)}, got {self.point_dtype!r}")
+        if not 1 <= self.imagined_steps <= self.n_obs_steps:
+            raise ValueError(f"imagined_steps must be in 1..n_obs_steps ({self.n_obs_steps}), "
+                             f"got {self.imagined_steps}")
 
 
 @dataclass(frozen=True)
@@ -90,7 +97,7 @@ class ObservationEncoder(nn.Module):
 
     Input: a mapping with ``point_cloud`` (B, n_obs, N, 3) when ``use_cloud``, the
     ``state_key`` observation (B, n_obs, D) and, when ``use_imagination``,
-    ``imagined_point_cloud`` (B, n_obs, N, 3).
+    ``imagined_point_cloud`` (B, n_obs, N, 3), of which the last ``imagined_steps`` are read.
     """
 
     def __init__(self, config: EncoderConfig, state_dim: int) -> None:
@@ -108,16 +115,16 @@ class ObservationEncoder(nn.Module):
         self.state = nn.Sequential(
             nn.Linear(state_dim, config.state_hidden), nn.ReLU(), nn.Linear(config.state_hidden, config.embed_dim)
         )
-        modalities = 1 + int(config.use_cloud) + int(config.use_imagination)
-        self.out_dim = config.n_obs_steps * modalities * config.embed_dim
+        imagined = config.imagined_steps if config.use_imagination else 0
+        self.out_dim = (config.n_obs_steps * (1 + int(config.use_cloud)) + imagined) * config.embed_dim
 
     def forward(self, observation: dict[str, torch.Tensor]) -> torch.Tensor:
         parts = [self.state(observation[self.config.state_key])]
         if self.cloud is not None:
             parts.append(self.cloud(observation["point_cloud"]))
         if self.imagined is not None:
-            parts.append(self.imagined(observation["imagined_point_cloud"]))
-        return torch.cat(parts, dim=-1).flatten(1)
+            parts.append(self.imagined(observation["imagined_point_cloud"][:, -self.config.imagined_steps:]))
+        return torch.cat([part.flatten(1) for part in parts], dim=1)
 
 
 def time_embedding(t: torch.Tensor, dim: int, scale: float = 1.0) -> torch.Tensor:
