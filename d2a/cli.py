@@ -85,7 +85,7 @@ def cmd_viz_pointcloud(args: argparse.Namespace) -> None:
 def cmd_bench_envs(args: argparse.Namespace) -> None:
     from benchmarks.envs import EnvBenchConfig, run
 
-    run(EnvBenchConfig(task=args.task, steps=args.steps, seed=args.seed))
+    run(_replace_given(EnvBenchConfig(), task=args.task, steps=args.steps, seed=args.seed))
 
 
 def cmd_collect(args: argparse.Namespace) -> None:
@@ -183,14 +183,15 @@ def cmd_bench_experts(args: argparse.Namespace) -> None:
     from benchmarks.experts import ExpertBenchConfig, run
 
     base = ExpertBenchConfig()
-    run(dataclasses.replace(base, tasks=tuple(args.task or base.tasks), episodes=args.episodes, workers=args.workers))
+    run(_replace_given(base, tasks=tuple(args.task) if args.task else None, episodes=args.episodes,
+                       workers=args.workers))
 
 
 def cmd_bench_latency(args: argparse.Namespace) -> None:
     from benchmarks.latency import LatencyBenchConfig, run
 
-    run(LatencyBenchConfig(task=args.task, num_points=args.num_points, repeats=args.repeats,
-                           world_model=args.world_model, data=args.data))
+    run(_replace_given(LatencyBenchConfig(), task=args.task, num_points=args.num_points, repeats=args.repeats,
+                       world_model=args.world_model, data=args.data))
 
 
 def cmd_bench_train(args: argparse.Namespace) -> None:
@@ -203,12 +204,12 @@ def cmd_bench_ablate(args: argparse.Namespace) -> None:
     from benchmarks.ablation import AblationConfig, run, table
 
     if args.table:
-        print(table(args.workdir))
+        print(table(args.workdir or AblationConfig.workdir))
         return
     if not (args.data and args.task):
         raise ValueError("bench ablate needs --data and --task (or --table)")
-    run(AblationConfig(data=args.data, task=args.task, change=args.change, algo=args.algo, seed=args.seed,
-                       world_model=args.world_model, episodes=args.episodes, workdir=args.workdir))
+    run(_replace_given(AblationConfig(data=args.data, task=args.task), change=args.change, algo=args.algo,
+                       seed=args.seed, world_model=args.world_model, episodes=args.episodes, workdir=args.workdir))
 
 
 def cmd_bench_wm(args: argparse.Namespace) -> None:
@@ -293,9 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser("bench", help="benchmarks (print figures)").add_subparsers(dest="what", required=True)
     bench_envs = bench.add_parser("envs", help="env steps/s per depth backend")
-    bench_envs.add_argument("--task", default="hammer")
-    bench_envs.add_argument("--steps", type=POSITIVE, default=100)
-    bench_envs.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    bench_envs.add_argument("--task", default=None)
+    bench_envs.add_argument("--steps", type=POSITIVE, default=None)
+    bench_envs.add_argument("--seed", type=NON_NEGATIVE, default=None)
     bench_envs.set_defaults(func=cmd_bench_envs)
 
     collect = commands.add_parser("collect", help="expert demonstrations (scripted or planning) into a data set")
@@ -394,14 +395,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench_experts = bench.add_parser("experts", help="expert success per task (Meta-World, Adroit), parallel speed-up")
     bench_experts.add_argument("--task", action="append", default=None, help="default: all 50 Meta-World tasks")
-    bench_experts.add_argument("--episodes", type=POSITIVE, default=5)
-    bench_experts.add_argument("--workers", type=POSITIVE, default=2)
+    bench_experts.add_argument("--episodes", type=POSITIVE, default=None)
+    bench_experts.add_argument("--workers", type=POSITIVE, default=None)
     bench_experts.set_defaults(func=cmd_bench_experts)
 
     bench_latency = bench.add_parser("latency", help="batch-1 CPU latency: MeanFlow 1 NFE vs DDIM 10 NFE, imagination")
-    bench_latency.add_argument("--task", default="hammer")
-    bench_latency.add_argument("--num-points", type=POSITIVE, default=1024)
-    bench_latency.add_argument("--repeats", type=POSITIVE, default=50)
+    bench_latency.add_argument("--task", default=None)
+    bench_latency.add_argument("--num-points", type=POSITIVE, default=None)
+    bench_latency.add_argument("--repeats", type=POSITIVE, default=None)
     bench_latency.add_argument("--world-model", help="also time this trained world model (needs --data)")
     bench_latency.add_argument("--data", help="demonstrations to imagine from, with their recorded actions")
     bench_latency.set_defaults(func=cmd_bench_latency)
@@ -416,12 +417,12 @@ def build_parser() -> argparse.ArgumentParser:
                                                    "100-episode evaluation; --table sums the runs up")
     bench_ablate.add_argument("--data", default=None, help="data set directory (d2a collect)")
     bench_ablate.add_argument("--task", default=None)
-    bench_ablate.add_argument("--change", default="none", help="see benchmarks/ablation.py CHANGES")
-    bench_ablate.add_argument("--algo", choices=ALGOS, default="mp1")
+    bench_ablate.add_argument("--change", default=None, help="see benchmarks/ablation.py CHANGES (default none)")
+    bench_ablate.add_argument("--algo", choices=ALGOS, default=None)
     bench_ablate.add_argument("--world-model", default=None, help="for the imagination variants")
-    bench_ablate.add_argument("--seed", type=NON_NEGATIVE, default=0)
-    bench_ablate.add_argument("--episodes", type=POSITIVE, default=100)
-    bench_ablate.add_argument("--workdir", default="outputs/bench_ablation")
+    bench_ablate.add_argument("--seed", type=NON_NEGATIVE, default=None)
+    bench_ablate.add_argument("--episodes", type=POSITIVE, default=None)
+    bench_ablate.add_argument("--workdir", default=None)
     bench_ablate.add_argument("--table", action="store_true", help="print the table of the finished runs")
     bench_ablate.set_defaults(func=cmd_bench_ablate)
 

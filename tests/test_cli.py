@@ -164,3 +164,21 @@ def test_defaults_live_in_the_configs_alone(captured, monkeypatch):
     with pytest.raises(Stop):
         main(["collect", "--task", "reach", "--out", "o"])
     assert captured["config"] == CollectConfig(tasks=("reach",), out="o")
+
+
+@pytest.mark.parametrize("argv, module, config", [
+    (["bench", "envs"], "benchmarks.envs", "EnvBenchConfig"),
+    (["bench", "experts"], "benchmarks.experts", "ExpertBenchConfig"),
+    (["bench", "latency"], "benchmarks.latency", "LatencyBenchConfig"),
+    (["bench", "train"], "benchmarks.train", "TrainBenchConfig"),
+    (["bench", "ablate", "--data", "d", "--task", "hammer"], "benchmarks.ablation", "AblationConfig"),
+])
+def test_bench_defaults_live_in_their_configs(argv, module, config, monkeypatch):
+    import importlib
+
+    bench = importlib.import_module(module)
+    seen = {}
+    monkeypatch.setattr(bench, "run", lambda given: seen.setdefault("config", given))
+    main(argv)
+    required = {"data": "d", "task": "hammer"} if config == "AblationConfig" else {}
+    assert seen["config"] == getattr(bench, config)(**required)
