@@ -95,6 +95,9 @@ class AdroitExpert(TensorDictModuleBase):
         return self._replicas[index]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if PHYSICS_KEY not in tensordict.keys():
+            raise KeyError(f"the {self.task} expert plans from {PHYSICS_KEY!r}: make the env with physics_obs=True "
+                           f"(collectors.experts.expert_env_kwargs)")
         physics = tensordict.get(PHYSICS_KEY)
         batch = physics.shape[:-1]
         flat = physics.reshape(-1, physics.shape[-1]).detach().cpu().numpy().astype(np.float64)

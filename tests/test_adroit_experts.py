@@ -120,6 +120,13 @@ def test_hammer_expert_drives_the_nail_in_a_short_seeded_episode():
     assert bool(rollout["next", "success"].any())
 
 
+def test_an_env_without_the_physics_observation_gets_a_clear_error():
+    env = make_torchrl_env("adroit-door", SMALL_ENV_KWARGS, seed=0)
+    with pytest.raises(KeyError, match="physics_obs=True"):
+        AdroitExpert("adroit-door")(env.reset())
+    env.close()
+
+
 def test_experts_are_picked_per_suite_and_unknown_ones_refused():
     assert isinstance(make_expert("adroit-door"), AdroitExpert)
     assert type(make_expert("reach")).__name__ == "ScriptedExpert"
