@@ -2,11 +2,15 @@
 
 At every control step the planner perturbs a nominal action sequence (a few knots, linearly
 interpolated over the horizon), rolls every candidate out from the current state with
-``mujoco.rollout`` (in C, on a replica of the scene), scores the trajectories with a task
-cost and keeps the best as the next nominal, shifted by one step (Howell et al., 2022,
-"Predictive Sampling: Real-time Behaviour Synthesis with MuJoCo"). The nominal itself is
-always a candidate, so the plan's cost never rises from one step to the next without the
-state changing. Seeded, it is deterministic.
+``mujoco.rollout`` (in C), scores the trajectories with a task cost and keeps the best as the
+next nominal, shifted by one step (Howell et al., 2022, "Predictive Sampling: Real-time
+Behaviour Synthesis with MuJoCo"). The nominal itself is always a candidate. Seeded, it is
+deterministic.
+
+The planning model is the scene's own model compiled with one frame-position sensor per
+site and body the cost reads (:func:`planning_model`), so the rollouts return those positions
+directly; it may take a coarser timestep than the scene (fewer physics steps per control
+step, a cheaper and slightly less exact prediction).
 """
 
 from __future__ import annotations
@@ -18,6 +22,8 @@ import mujoco
 import numpy as np
 from mujoco import rollout
 
+_SENSOR_PREFIX = "planning/"
+
 
 @dataclass(frozen=True)
 class SamplingConfig:
@@ -26,25 +32,31 @@ class SamplingConfig:
     Attributes:
         horizon: control steps per rollout.
         knots: knots of the action sequence over the horizon (linear in between).
-        samples: candidates per step, the nominal included.
+        samples: candidates per iteration, the nominal included.
+        iterations: sampling rounds per control step, each around the best so far.
         sigma: standard deviation of the knot noise, in normalised action units ([-1, 1]).
+        sigma_by_actuator: (actuator name prefix, sigma) pairs that override ``sigma``.
         cost_every: the cost reads every ``cost_every``-th control step of a rollout.
         hold_start: start each episode from the action that holds the current joint
             positions (position servos) instead of the middle of the action range.
+        planning_timestep: timestep of the planning model in seconds (None: the scene's).
     """
 
     horizon: int = 16
     knots: int = 4
     samples: int = 32
+    iterations: int = 1
     sigma: float = 0.3
+    sigma_by_actuator: tuple[tuple[str, float], ...] = ()
     cost_every: int = 2
     hold_start: bool = False
+    planning_timestep: float | None = None
 
     def __post_init__(self) -> None:
         if self.knots < 2 or self.horizon < self.knots or self.samples < 2 or self.cost_every < 1:
             raise ValueError(f"need knots >= 2, horizon >= knots, samples >= 2, cost_every >= 1: {self}")
-        if not self.sigma > 0:
-            raise ValueError(f"sigma must be positive, got {self.sigma}")
+        if self.iterations < 1 or not self.sigma > 0 or not all(s > 0 for _, s in self.sigma_by_actuator):
+            raise ValueError(f"iterations must be >= 1 and every sigma positive: {self}")
 
 
 @dataclass(frozen=True)
@@ -73,12 +85,26 @@ class TaskCost:
     score: Callable[[Trajectories], np.ndarray]
 
 
+def planning_model(spec: mujoco.MjSpec, cost: TaskCost, timestep: float | None = None) -> mujoco.MjModel:
+    """The scene of ``spec`` with a frame-position sensor for each of the cost's sites and
+    bodies (the rollouts then return their positions), at ``timestep`` if given. The sensors
+    change nothing else: bodies, joints and dynamics are the scene's."""
+    for kind, names in ((mujoco.mjtObj.mjOBJ_SITE, cost.sites), (mujoco.mjtObj.mjOBJ_BODY, cost.bodies)):
+        for name in names:
+            spec.add_sensor(name=f"{_SENSOR_PREFIX}{name}", type=mujoco.mjtSensor.mjSENS_FRAMEPOS, objtype=kind,
+                            objname=name)
+    model = spec.compile()
+    if timestep is not None:
+        model.opt.timestep = timestep
+    return model
+
+
 class PredictiveSampler:
-    """Plans normalised actions for a MuJoCo scene whose actuators take ``mean + a * scale``.
+    """Plans normalised actions for a scene whose actuators take ``mean + a * scale``.
 
     Args:
-        model: the replica's model (its layout must match the real scene's).
-        frame_skip: physics steps per control step.
+        model: the planning model (:func:`planning_model`; its layout must match the scene's).
+        physics_steps: physics steps of ``model`` per control step.
         action_mean, action_scale: the env's map from [-1, 1] to actuator controls.
         cost: the task cost.
         config: sampling settings.
@@ -87,26 +113,38 @@ class PredictiveSampler:
     def __init__(
         self,
         model: mujoco.MjModel,
-        frame_skip: int,
+        physics_steps: int,
         action_mean: np.ndarray,
         action_scale: np.ndarray,
         cost: TaskCost,
         config: SamplingConfig = SamplingConfig(),
     ) -> None:
-        self.model, self.frame_skip, self.cost, self.config = model, frame_skip, cost, config
+        self.model, self.physics_steps, self.cost, self.config = model, physics_steps, cost, config
         self.action_mean, self.action_scale = np.asarray(action_mean), np.asarray(action_scale)
         self._rollout_data = [mujoco.MjData(model)]
-        self._kinematics = mujoco.MjData(model)
-        self._sites = [model.site(name).id for name in cost.sites]
-        self._bodies = [model.body(name).id for name in cost.bodies]
+        self._site_columns = self._sensor_columns(cost.sites)
+        self._body_columns = self._sensor_columns(cost.bodies)
+        names = [model.actuator(i).name for i in range(model.nu)]
+        self.sigma = np.array([next((s for prefix, s in config.sigma_by_actuator if name.startswith(prefix)),
+                                    config.sigma) for name in names])
         self._knot_times = np.linspace(0.0, config.horizon - 1, config.knots)
         steps = np.arange(config.horizon)
         left = np.clip(np.searchsorted(self._knot_times, steps, side="right") - 1, 0, config.knots - 2)
         gap = self._knot_times[left + 1] - self._knot_times[left]
         self._left, self._weight = left, ((steps - self._knot_times[left]) / gap)[None, :, None]
-        self._read_steps = np.arange(config.cost_every - 1, config.horizon, config.cost_every)
+        read = np.arange(config.cost_every - 1, config.horizon, config.cost_every)
+        self._read_steps = (read + 1) * physics_steps - 1  # the physics step that ends each read control step
         self.nominal = np.zeros((config.knots, model.nu))
         self._rng = np.random.default_rng(0)
+
+    def _sensor_columns(self, names: Sequence[str]) -> np.ndarray:
+        """Columns of the rollouts' sensordata holding the xyz of each named frame."""
+        try:
+            addresses = [self.model.sensor(f"{_SENSOR_PREFIX}{name}").adr[0] for name in names]
+        except KeyError as error:
+            raise ValueError(f"the planning model lacks the cost's sensors ({error}): build it with planning_model") \
+                from error
+        return np.array([[a, a + 1, a + 2] for a in addresses], dtype=np.int64).reshape(-1, 3)
 
     def reset(self, data: mujoco.MjData, seed: int) -> None:
         """Start an episode from the scene in ``data``, with its own random stream."""
@@ -127,31 +165,25 @@ class PredictiveSampler:
         config, model = self.config, self.model
         state = np.empty(mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS))
         mujoco.mj_getState(model, data, state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
-        noise = self._rng.normal(0.0, config.sigma, (config.samples, config.knots, model.nu))
-        noise[0] = 0.0  # the nominal stays a candidate
-        candidates = np.clip(self.nominal[None] + noise, -1.0, 1.0)
-        actions = self.actions(candidates)
-        controls = np.repeat(self.action_mean + actions * self.action_scale, self.frame_skip, axis=1)
-        states, _ = rollout.rollout(model, self._rollout_data, state, controls)
-        # the state at the end of each read control step; column 0 of a state is the time
-        read = states[:, (self._read_steps + 1) * self.frame_skip - 1, 1 : 1 + model.nq]
-        costs = self.cost.score(self._trajectories(read, actions))
-        best = int(np.argmin(costs))
-        self.nominal = self._shifted(actions[best])
-        return actions[best, 0].copy(), float(costs[best])
+        best_knots, best_actions, best_cost = self.nominal, None, np.inf
+        for _ in range(config.iterations):
+            noise = self._rng.normal(0.0, 1.0, (config.samples, config.knots, model.nu)) * self.sigma
+            noise[0] = 0.0  # the best so far stays a candidate
+            candidates = np.clip(best_knots[None] + noise, -1.0, 1.0)
+            actions = self.actions(candidates)
+            controls = np.repeat(self.action_mean + actions * self.action_scale, self.physics_steps, axis=1)
+            states, sensors = rollout.rollout(model, self._rollout_data, state, controls)
+            costs = self.cost.score(self._trajectories(states, sensors, actions))
+            best = int(np.argmin(costs))
+            best_knots, best_actions, best_cost = candidates[best], actions[best], float(costs[best])
+        self.nominal = self._shifted(best_actions)
+        return best_actions[0].copy(), best_cost
 
-    def _trajectories(self, qpos: np.ndarray, actions: np.ndarray) -> Trajectories:
-        n, steps = qpos.shape[:2]
-        sites = np.empty((n, steps, len(self._sites), 3))
-        bodies = np.empty((n, steps, len(self._bodies), 3))
-        kinematics = self._kinematics
-        for i in range(n):
-            for k in range(steps):
-                kinematics.qpos[:] = qpos[i, k]
-                mujoco.mj_kinematics(self.model, kinematics)
-                sites[i, k] = kinematics.site_xpos[self._sites]
-                bodies[i, k] = kinematics.xpos[self._bodies]
-        return Trajectories(qpos=qpos, sites=sites, bodies=bodies, actions=actions)
+    def _trajectories(self, states: np.ndarray, sensors: np.ndarray, actions: np.ndarray) -> Trajectories:
+        read = self._read_steps
+        qpos = states[:, read, 1 : 1 + self.model.nq]  # column 0 of a state is the time
+        return Trajectories(qpos=qpos, sites=sensors[:, read][..., self._site_columns],
+                            bodies=sensors[:, read][..., self._body_columns], actions=actions)
 
     def _shifted(self, actions: np.ndarray) -> np.ndarray:
         """Knots of ``actions`` (horizon, nu) one control step later (the last step held)."""

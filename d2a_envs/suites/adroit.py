@@ -54,6 +54,11 @@ class AdroitEnv(SuiteEnv):
         return self._sim.data.qpos[self._actuated_qpos].copy()
 
     @property
+    def model_path(self) -> str:
+        """The MJCF file of the scene (a planner compiles its own copy from it)."""
+        return str(self._sim.fullpath)
+
+    @property
     def frame_skip(self) -> int:
         """Physics steps per control step."""
         return int(self._sim.frame_skip)
