@@ -172,6 +172,9 @@ class PredictiveSampler:
             candidates = np.clip(best_knots[None] + noise, -1.0, 1.0)
             actions = self.actions(candidates)
             controls = np.repeat(self.action_mean + actions * self.action_scale, self.physics_steps, axis=1)
+            # One physics step more: a step's sensors describe the state it started from, so the
+            # positions of the state after step k are the sensors of step k + 1.
+            controls = np.concatenate([controls, controls[:, -1:]], axis=1)
             states, sensors = rollout.rollout(model, self._rollout_data, state, controls)
             costs = self.cost.score(self._trajectories(states, sensors, actions))
             best = int(np.argmin(costs))
@@ -182,8 +185,9 @@ class PredictiveSampler:
     def _trajectories(self, states: np.ndarray, sensors: np.ndarray, actions: np.ndarray) -> Trajectories:
         read = self._read_steps
         qpos = states[:, read, 1 : 1 + self.model.nq]  # column 0 of a state is the time
-        return Trajectories(qpos=qpos, sites=sensors[:, read][..., self._site_columns],
-                            bodies=sensors[:, read][..., self._body_columns], actions=actions)
+        frames = sensors[:, read + 1]  # the positions of those same states
+        return Trajectories(qpos=qpos, sites=frames[..., self._site_columns], bodies=frames[..., self._body_columns],
+                            actions=actions)
 
     def _shifted(self, actions: np.ndarray) -> np.ndarray:
         """Knots of ``actions`` (horizon, nu) one control step later (the last step held)."""

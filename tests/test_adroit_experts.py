@@ -79,6 +79,27 @@ def test_the_planning_model_reports_the_cost_frames_and_keeps_the_dynamics():
         PredictiveSampler(mujoco.MjModel.from_xml_string("<mujoco/>"), 1, np.zeros(0), np.ones(0), cost)
 
 
+def test_the_cost_sees_positions_and_joints_of_the_same_states():
+    """Sites handed to the cost sit 0.1 m from the joint position of the same read step."""
+    seen = []
+
+    def score(t):
+        seen.append(t)
+        return np.zeros(len(t.actions))
+
+    cost = TaskCost(("tip",), ("mass",), score)
+    model = _slide_model(cost)
+    data = mujoco.MjData(model)
+    planner = PredictiveSampler(model, 3, np.zeros(1), np.ones(1), cost, SamplingConfig(horizon=6, knots=2, samples=4))
+    planner.reset(data, seed=0)
+    planner.plan(data)
+    t = seen[0]
+    assert t.qpos.shape == (4, 3, 1) and t.sites.shape == (4, 3, 1, 3)  # every 2nd of 6 control steps
+    assert np.ptp(t.qpos) > 1e-3  # the mass moves
+    np.testing.assert_allclose(t.sites[..., 0, 0], t.qpos[..., 0] + 0.1, atol=1e-12)
+    np.testing.assert_allclose(t.bodies[..., 0, 0], t.qpos[..., 0], atol=1e-12)
+
+
 def test_the_planner_drives_a_servo_to_a_target_it_only_sees_through_the_cost():
     target = 0.4
 
