@@ -1,12 +1,12 @@
-"""Adroit experts: predictive sampling on a replica of the scene, with hand-written costs.
+"""Adroit experts: predictive sampling on a copy of the scene, with hand-written costs.
 
 Nothing can be downloaded here (DP3 and MP1 use pretrained VRL3 agents), so the Adroit
 demonstrations come from model-predictive control on the true simulator: the expert reads
 the env's ``physics`` observation (full MuJoCo state and the reset's layout), copies it into
-its own planning copy of the scene and plans the next action
-(:mod:`collectors.predictive_sampling`). The costs
-are this module's own: gymnasium-robotics' dense rewards add +0.1 x the palm's distance to
-the handle or hammer, which rewards staying away.
+its planning copy of the scene and plans the next action
+(:mod:`collectors.predictive_sampling`). The costs are this module's own: gymnasium-robotics'
+dense rewards add +0.1 x the palm's distance to the handle or hammer, which pays for staying
+away.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ def _effort(t: Trajectories) -> np.ndarray:
     return 0.01 * (t.actions**2).mean(axis=(1, 2))
 
 
-def _door_cost(model) -> TaskCost:
+def _door_cost(model: mujoco.MjModel) -> TaskCost:
     hinge, latch = model.joint("door_hinge").qposadr[0], model.joint("latch").qposadr[0]
 
     def score(t: Trajectories) -> np.ndarray:
@@ -44,7 +44,7 @@ def _door_cost(model) -> TaskCost:
     return TaskCost(sites=("S_grasp", "S_handle"), bodies=(), score=score)
 
 
-def _hammer_cost(model) -> TaskCost:
+def _hammer_cost(model: mujoco.MjModel) -> TaskCost:
     def score(t: Trajectories) -> np.ndarray:
         palm, head, nail, goal = (t.sites[:, :, i] for i in range(4))
         grasp = _distance(palm, t.bodies[:, :, 0]).mean(1)  # palm to the hammer
@@ -55,7 +55,7 @@ def _hammer_cost(model) -> TaskCost:
     return TaskCost(sites=("S_grasp", "tool", "S_target", "nail_goal"), bodies=("Object",), score=score)
 
 
-def _pen_cost(model) -> TaskCost:
+def _pen_cost(model: mujoco.MjModel) -> TaskCost:
     def unit(v: np.ndarray) -> np.ndarray:
         return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
