@@ -40,6 +40,10 @@ class SamplingConfig:
         hold_start: start each episode from the action that holds the current joint
             positions (position servos) instead of the middle of the action range.
         planning_timestep: timestep of the planning model in seconds (None: the scene's).
+        first_knot_noise: the first knot's noise as a fraction of the others'. Below 1 the
+            executed actions change only as fast as the plan bends towards its later knots
+            (0: the previous plan's next action): demonstrations a policy can imitate,
+            instead of a new random draw at every step.
     """
 
     horizon: int = 16
@@ -51,12 +55,15 @@ class SamplingConfig:
     cost_every: int = 2
     hold_start: bool = False
     planning_timestep: float | None = None
+    first_knot_noise: float = 1.0
 
     def __post_init__(self) -> None:
         if self.knots < 2 or self.horizon < self.knots or self.samples < 2 or self.cost_every < 1:
             raise ValueError(f"need knots >= 2, horizon >= knots, samples >= 2, cost_every >= 1: {self}")
         if self.iterations < 1 or not self.sigma > 0 or not all(s > 0 for _, s in self.sigma_by_actuator):
             raise ValueError(f"iterations must be >= 1 and every sigma positive: {self}")
+        if not 0.0 <= self.first_knot_noise <= 1.0:
+            raise ValueError(f"first_knot_noise must be in [0, 1], got {self.first_knot_noise}")
 
 
 @dataclass(frozen=True)
@@ -169,6 +176,7 @@ class PredictiveSampler:
         for _ in range(config.iterations):
             noise = self._rng.normal(0.0, 1.0, (config.samples, config.knots, model.nu)) * self.sigma
             noise[0] = 0.0  # the best so far stays a candidate
+            noise[:, 0] *= config.first_knot_noise
             candidates = np.clip(best_knots[None] + noise, -1.0, 1.0)
             actions = self.actions(candidates)
             controls = np.repeat(self.action_mean + actions * self.action_scale, self.physics_steps, axis=1)

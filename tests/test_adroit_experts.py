@@ -100,6 +100,24 @@ def test_the_cost_sees_positions_and_joints_of_the_same_states():
     np.testing.assert_allclose(t.bodies[..., 0, 0], t.qpos[..., 0], atol=1e-12)
 
 
+def test_a_held_first_knot_executes_the_previous_plans_next_action():
+    def score(t):
+        return np.abs(t.sites[:, :, 0, 0] - 0.5).mean(1)
+
+    cost = TaskCost(("tip",), (), score)
+    model = _slide_model(cost)
+    data = mujoco.MjData(model)
+    planner = PredictiveSampler(model, 2, np.zeros(1), np.ones(1), cost,
+                                SamplingConfig(horizon=9, knots=3, samples=8, first_knot_noise=0.0))
+    planner.reset(data, seed=0)
+    for _ in range(5):
+        planned_next = planner.nominal[0].copy()  # the last plan, one step on
+        action, _ = planner.plan(data)
+        np.testing.assert_allclose(action, planned_next, atol=1e-12)
+        data.ctrl[:] = action
+        mujoco.mj_step(model, data, 2)
+
+
 def test_the_planner_drives_a_servo_to_a_target_it_only_sees_through_the_cost():
     target = 0.4
 
@@ -153,7 +171,7 @@ def test_door_expert_reaches_the_handle_and_turns_the_latch():
 
 
 def test_hammer_expert_drives_the_nail_in_a_short_seeded_episode():
-    rollout = _rollout("adroit-hammer", 30)
+    rollout = _rollout("adroit-hammer", 45, seed=2)
     assert bool(rollout["next", "success"].any())
 
 
@@ -187,9 +205,9 @@ def test_collect_stores_adroit_demonstrations_without_the_planner_input(tmp_path
     from collectors.storage import DemoDataset
 
     config = CollectConfig(tasks=("adroit-hammer",), out=str(tmp_path / "hammer"), episodes=1, max_attempts_factor=1,
-                           max_episode_steps=30, env_kwargs=SMALL_ENV_KWARGS, progress=False)
+                           seed=2, max_episode_steps=45, env_kwargs=SMALL_ENV_KWARGS, progress=False)
     dataset = DemoDataset.open(collect(config).directory)
     episode = dataset.episode(0)
     assert dataset.metadata.episodes[0].success and bool(episode["success"].any())
-    assert episode["action"].shape == (30, 26) and episode["agent_pos"].shape == (30, 26)
+    assert episode["action"].shape == (45, 26) and episode["agent_pos"].shape == (45, 26)
     assert "physics" not in episode.keys() and "physics_obs" not in dataset.metadata.tasks["adroit-hammer"]
