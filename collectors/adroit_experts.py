@@ -72,12 +72,12 @@ def _pen_cost(model: mujoco.MjModel) -> TaskCost:
 
 
 # Per task: the cost and the sampling settings (measured in docs/environments.md). The first
-# knot is held (Door, Hammer) or barely moved (Pen), so the executed actions are smooth enough
+# knot is held (Door) or barely moved (Hammer, Pen), so the executed actions are smooth enough
 # to imitate. Pen plans on a 10 ms model (one physics step per control step instead of five of
 # 2 ms: 4-5x cheaper rollouts) with 2 x 128 samples, the wrist sampled wider than the fingers.
 EXPERTS = {
     "door": (_door_cost, SamplingConfig(horizon=16, knots=4, samples=32, sigma=0.5, first_knot_noise=0.0)),
-    "hammer": (_hammer_cost, SamplingConfig(horizon=16, knots=4, samples=32, sigma=0.3, first_knot_noise=0.0)),
+    "hammer": (_hammer_cost, SamplingConfig(horizon=16, knots=4, samples=48, sigma=0.3, first_knot_noise=0.3)),
     "pen": (_pen_cost, SamplingConfig(horizon=30, knots=4, samples=128, iterations=2, sigma=0.15,
                                       sigma_by_actuator=(("A_WRJ", 0.6),), cost_every=1, hold_start=True,
                                       planning_timestep=0.01, first_knot_noise=0.3)),
