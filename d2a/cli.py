@@ -442,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_wm.add_argument("--num-points", type=POSITIVE, default=None, help="points per collected cloud (default 4096)")
     bench_wm.add_argument("--image-size", type=POSITIVE, default=None, help="depth image size (default 256)")
     bench_wm.add_argument("--backend", choices=("raycast", "render"), default=None, help="depth backend")
-    bench_wm.add_argument("--workdir", default="outputs/bench_wm")
+    bench_wm.add_argument("--workdir", default=None)
     bench_wm.set_defaults(func=cmd_bench_wm)
 
     bench_success = bench.add_parser("success", help="success rates of d2a / d2a-no-cfg / mp1 / dp3, both protocols")
@@ -463,7 +463,7 @@ def build_parser() -> argparse.ArgumentParser:
                                help="demo: 32x32x8 Conv3d (the cpu preset's); cpu: d2a train-wm's 128x128x32 "
                                     "point-scatter (default: the preset's)")
     bench_success.add_argument("--wm-steps", type=POSITIVE, default=None, help="world-model training steps")
-    bench_success.add_argument("--workdir", default="outputs/bench_success",
+    bench_success.add_argument("--workdir", default=None,
                                help="data, models and finished cells; a rerun resumes")
     bench_success.set_defaults(func=cmd_bench_success)
 

@@ -182,3 +182,12 @@ def test_bench_defaults_live_in_their_configs(argv, module, config, monkeypatch)
     main(argv)
     required = {"data": "d", "task": "hammer"} if config == "AblationConfig" else {}
     assert seen["config"] == getattr(bench, config)(**required)
+
+
+def test_bench_success_bench_wm_and_demo_defaults_live_in_their_configs(captured):
+    main(["bench", "success"])
+    assert captured["config"] == benchmarks.success.PRESETS["cpu"]
+    main(["bench", "wm"])
+    assert captured["config"] == benchmarks.world_model.WorldModelBenchConfig()
+    main(["demo"])
+    assert captured["config"] == d2a.demo.DemoConfig()
