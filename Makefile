@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 $(BIN)/d2a: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -c constraints.txt -e ".[test]"
+	$(BIN)/pip install --quiet -c constraints.txt -e ".[test,ray]"
 	touch $(BIN)/d2a
 
 install: $(BIN)/d2a

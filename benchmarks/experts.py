@@ -23,6 +23,7 @@ import d2a_envs
 from collectors.envs import STATE_KEY, make_torchrl_env
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
 from collectors.experts import expert_env_kwargs, make_expert
+from collectors.ray_jobs import ray_connection
 from d2a_envs.tasks import DIFFICULTIES
 
 # Meta-World v3 state layout: hand xyz, gripper opening, first object xyz + quaternion, ...,
@@ -47,6 +48,8 @@ class ExpertBenchConfig:
         speedup_episodes: episode counts of that timing (the worker start-up is amortised
             over more episodes).
         progress: progress bar over tasks.
+        ray_address: evaluate on Ray (``"local"``, ``"auto"`` or a cluster address); the
+            one-process vs. ``workers``-process timing stays local.
     """
 
     tasks: tuple[str, ...] = tuple(spec.name for spec in d2a_envs.list_tasks(suite="metaworld"))
@@ -59,6 +62,7 @@ class ExpertBenchConfig:
     speedup_task: str = "hammer"
     speedup_episodes: tuple[int, ...] = (5, 20)
     progress: bool = True
+    ray_address: str | None = None
 
 
 def _expert(task: str) -> functools.partial:
@@ -97,7 +101,7 @@ def failure_reason(result: EvaluationResult, config: ExpertBenchConfig) -> str:
     failed = [seed for seed, success in zip(result.seeds, result.successes, strict=True) if not success]
     late = evaluate(
         _expert(result.task), result.task, len(result.seeds), result.seeds[0], _env_kwargs(config, result.task),
-        workers=config.workers, max_steps=config.late_max_steps, progress=False,
+        workers=config.workers, max_steps=config.late_max_steps, progress=False, ray_address=config.ray_address,
     )
     late_steps = dict(zip(late.seeds, late.success_steps, strict=True))
     parts = []
@@ -130,12 +134,17 @@ def speedup(config: ExpertBenchConfig) -> list[dict[str, object]]:
 
 def run(config: ExpertBenchConfig = ExpertBenchConfig()) -> list[dict[str, object]]:
     """Evaluate the expert on every task; prints markdown tables and returns the rows."""
+    with ray_connection(config.ray_address):  # one Ray connection for every task's evaluation
+        return _run(config)
+
+
+def _run(config: ExpertBenchConfig) -> list[dict[str, object]]:
     rows: list[dict[str, object]] = []
     results: list[EvaluationResult] = []
     for task in tqdm(config.tasks, desc="tasks", disable=not config.progress):
         result = evaluate(
             _expert(task), task, config.episodes, config.seed, _env_kwargs(config, task),
-            workers=config.workers, max_steps=config.max_steps, progress=False,
+            workers=config.workers, max_steps=config.max_steps, progress=False, ray_address=config.ray_address,
         )
         results.append(result)
         steps = [step for step in result.success_steps if step is not None]

@@ -10,6 +10,13 @@ Every finished (task, variant, seed) is stored as ``cells/<task>_<algo>_s<seed>.
 (atomic write); a rerun skips finished cells and resumes an interrupted training from its
 checkpoint, so a long run can be killed and restarted.
 
+On Ray (``ray_address``), the demonstrations are collected as Ray jobs, each task's world
+model is a job, and every unfinished cell is a job that asks for ``threads`` CPUs (and a GPU
+where the cluster has one, training there); the driver writes each cell's file as it
+arrives, so the directory and the table are those of a local run. A cell whose worker died
+on every retry is reported as missing; a rerun resumes it from its checkpoint. The workdir
+must be readable and writable on every node (one machine, or a shared filesystem).
+
 Two presets: ``paper`` (the paper's protocol shape and the policy's full-size networks:
 3 seeds, 15 evaluations of 20 episodes, 100 final episodes; GPU work) and ``cpu`` (the same
 protocol shape with the ``cpu`` policy preset: 3 seeds, 5 evaluations of 20 episodes, 100
@@ -26,9 +33,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from tqdm import tqdm
+
 from collectors.atomic import atomic_write_text
 from collectors.collect import CollectConfig, collect
 from collectors.evaluation import honest_protocol, paper_protocol
+from collectors.ray_jobs import Lost, as_completed, cluster_gpus, ray_cluster
 from collectors.storage import DemoDataset
 from d2a_agents.policy.agent import uses_imagination
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, evaluate_checkpoint
@@ -59,7 +69,10 @@ class SuccessBenchConfig:
     final_episodes: int = 100  # extra evaluation of the final checkpoint; 0: reuse the last periodic one
     world_model: WorldModelConfig = WorldModelConfig(resolution=(32, 32, 8))
     world_model_steps: int = 300
-    workers: int = 1
+    workers: int = 1  # evaluation worker processes of a local cell (a Ray cell evaluates in its own process)
+    threads: int = 1  # torch threads of a cell's training; on Ray, the CPUs each cell asks for
+    device: str = "cpu"  # of a local cell's training; a Ray cell trains on "cuda" when the cluster has a GPU
+    ray_address: str | None = None  # "local", "auto" or a cluster address: run the cells on Ray
     final_seed: int = 100_000  # the extra final evaluation (periodic ones: train_policy's layouts)
     # gym.make options of the demonstrations (and so of every evaluation), e.g. the dense clouds
     # {"image_size": 256, "num_points": 4096, "backend": "render"} that the 128x128x32 world model reads.
@@ -109,34 +122,41 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     data = Path(config.workdir) / "data" / task
     if not DemoDataset.is_dataset(data):
         collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.demos, seed=0,
-                              env_kwargs=config.env_kwargs))
+                              env_kwargs=config.env_kwargs, ray_address=config.ray_address))
     return data
 
 
-def _world_model(config: SuccessBenchConfig, task: str, data: Path) -> Path:
+def _world_model(config: SuccessBenchConfig, task: str, data: Path, device: str = "cpu") -> Path:
     path = Path(config.workdir) / "world_models" / f"{task}.pt"
     train_world_model(TrainWorldModelConfig(
         data=str(data), out=str(path), model=config.world_model, steps=config.world_model_steps,
-        validate_every=config.world_model_steps, seed=0,
+        validate_every=config.world_model_steps, seed=0, device=device, threads=config.threads,
+        progress=config.ray_address is None,
     ))  # resumes, or returns at once when the checkpoint is finished
     return path
 
 
-def run_cell(config: SuccessBenchConfig, task: str, algo: str, seed: int, data: Path, world_model: Path) -> Cell:
-    """Train one policy (resuming if interrupted) with its periodic evaluations, then the final one."""
+def run_cell(
+    config: SuccessBenchConfig, task: str, algo: str, seed: int, data: Path, world_model: Path | None,
+    device: str | None = None, workers: int | None = None,
+) -> Cell:
+    """Train one policy (resuming if interrupted) with its periodic evaluations, then the final
+    one; ``device`` and ``workers`` default to the config's (a Ray cell passes its own)."""
     run = Path(config.workdir) / "runs" / f"{task}_{algo}_s{seed}"
     started = time.perf_counter()
     preset = config.policy
+    workers = workers or config.workers
+    progress = config.ray_address is None  # a Ray worker's bars would go to its log file
     _, history = train_policy(TrainPolicyConfig.from_preset(
         preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=algo),
         world_model=str(world_model) if uses_imagination(algo) else None,
         eval_every=max(1, preset.steps // config.evaluations), eval_episodes=config.eval_episodes,
-        eval_workers=config.workers, seed=seed,
+        eval_workers=workers, seed=seed, threads=config.threads, device=device or config.device, progress=progress,
     ))
     train_seconds = time.perf_counter() - started
     if config.final_episodes:
         final = evaluate_checkpoint(run / CHECKPOINT_NAME, task, config.final_episodes, config.final_seed,
-                                    workers=config.workers, end_on_success=True)
+                                    workers=workers, end_on_success=True, progress=progress)
         wins, episodes = sum(final.successes), final.episodes
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes
@@ -147,25 +167,79 @@ def _cell_path(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> P
     return Path(config.workdir) / "cells" / f"{task}_{algo}_s{seed}.json"
 
 
-def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
-    """Every (task, algo, seed) cell, finished ones read back from disk; prints the table."""
-    cells = []
-    for task in config.tasks:
+def _describe(cell: Cell) -> str:
+    return (f"{cell.task} {cell.algo} seed {cell.seed}: paper {cell.paper:.0%} (evaluations {cell.periodic}), "
+            f"final {cell.final_wins}/{cell.final_episodes}, trained in {cell.train_seconds:.0f} s")
+
+
+def _store(config: SuccessBenchConfig, cell: Cell) -> None:
+    path = _cell_path(config, cell.task, cell.algo, cell.seed)
+    atomic_write_text(path, json.dumps(dataclasses.asdict(cell), indent=1))
+
+
+def _run_locally(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -> dict[tuple[str, str, int], Cell]:
+    """The unfinished cells one after the other in this process, each stored as it finishes."""
+    done = {}
+    world_models: dict[str, Path | None] = {}
+    for task, algo, seed in todo:
         data = _dataset(config, task)
-        world_model = _world_model(config, task, data) if any(map(uses_imagination, config.algos)) else None
-        for algo in config.algos:
-            for seed in config.seeds:
-                path = _cell_path(config, task, algo, seed)
-                if path.exists():
-                    cell = Cell(**json.loads(path.read_text()))
+        if task not in world_models:
+            world_models[task] = _world_model(config, task, data) if any(map(uses_imagination, config.algos)) else None
+        print(f"training {algo} on {task}, seed {seed}", flush=True)
+        done[task, algo, seed] = cell = run_cell(config, task, algo, seed, data, world_models[task])
+        _store(config, cell)
+        print(_describe(cell), flush=True)
+    return done
+
+
+def _run_on_ray(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -> dict[tuple[str, str, int], Cell]:
+    """The unfinished cells as Ray jobs (world models first, one job per task); each cell is
+    stored by the driver as it arrives; cells lost on every retry are reported, not stored."""
+    with ray_cluster(config.ray_address) as ray:
+        gpus = 1 if cluster_gpus(ray) else 0
+        device = "cuda" if gpus else "cpu"
+        tasks = list(dict.fromkeys(task for task, _, _ in todo))
+        data = {task: _dataset(config, task) for task in tasks}
+        world_models: dict[str, Path | None] = dict.fromkeys(tasks)
+        if any(map(uses_imagination, config.algos)):
+            jobs = [(config, task, data[task], device) for task in tasks]
+            for index, outcome in as_completed(_world_model, jobs, num_cpus=config.threads, num_gpus=gpus):
+                if isinstance(outcome, Lost):
+                    raise RuntimeError(f"{tasks[index]}: the world model's Ray worker died on every attempt "
+                                       f"({outcome.reason}); rerun to resume it")
+                world_models[tasks[index]] = outcome
+        done, lost = {}, []
+        jobs = [(config, task, algo, seed, data[task], world_models[task], device, 1) for task, algo, seed in todo]
+        with tqdm(total=len(todo), desc="bench cells on Ray", unit="cell") as bar:
+            for index, outcome in as_completed(run_cell, jobs, num_cpus=config.threads, num_gpus=gpus, max_retries=1):
+                if isinstance(outcome, Lost):
+                    lost.append(f"{'/'.join(map(str, todo[index]))} ({outcome.reason})")
                 else:
-                    print(f"training {algo} on {task}, seed {seed}", flush=True)
-                    cell = run_cell(config, task, algo, seed, data, world_model)
-                    atomic_write_text(path, json.dumps(dataclasses.asdict(cell), indent=1))
-                print(f"{task} {algo} seed {seed}: paper {cell.paper:.0%} (evaluations {cell.periodic}), "
-                      f"final {cell.final_wins}/{cell.final_episodes}, trained in {cell.train_seconds:.0f} s",
-                      flush=True)
-                cells.append(cell)
+                    done[todo[index]] = outcome
+                    _store(config, outcome)
+                    bar.write(_describe(outcome))
+                bar.update(1)
+    if lost:
+        print(f"missing cells, their workers died on every attempt (a rerun resumes them): {'; '.join(lost)}")
+    return done
+
+
+def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
+    """Every (task, algo, seed) cell, finished ones read back from disk (locally or on Ray);
+    prints the table of the cells that finished."""
+    grid = [(task, algo, seed) for task in config.tasks for algo in config.algos for seed in config.seeds]
+    finished = {key: Cell(**json.loads(path.read_text())) for key in grid
+                if (path := _cell_path(config, *key)).exists()}
+    for cell in finished.values():
+        print(_describe(cell), flush=True)
+    todo = [key for key in grid if key not in finished]
+    if todo and config.ray_address is None:
+        finished |= _run_locally(config, todo)
+    elif todo:
+        finished |= _run_on_ray(config, todo)
+    cells = [finished[key] for key in grid if key in finished]
+    if not cells:
+        return cells
     print()
     print(format_table(cells, config))
     print(f"wrote {plot_success(cells, Path(config.workdir) / 'success.png')}")

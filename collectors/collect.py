@@ -5,17 +5,24 @@ The experts: Meta-World's scripted policies, the Adroit planners (:mod:`collecto
 Episode k of a collection with seed s is reset with seed s + k, so every stored episode is
 reproducible on its own, and a killed collection resumes exactly where it stopped: re-run
 the same command with ``--append`` and the attempts already made are skipped.
+
+On Ray (``ray_address``), the attempts run in parallel as Ray jobs, one episode each, and
+are stored in seed order: the same episodes, in the same order, as a local collection.
 """
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import json
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 from tqdm import tqdm
 
@@ -23,6 +30,7 @@ import d2a_envs
 from collectors.atomic import exclusive_writer, holds_only_lock
 from collectors.envs import make_torchrl_env
 from collectors.experts import expert_env_kwargs, make_expert
+from collectors.ray_jobs import Lost, as_completed, ray_connection
 from collectors.storage import (
     CollectionRecord,
     DatasetError,
@@ -48,6 +56,8 @@ class CollectConfig:
         append: add to an existing data set (resuming an interrupted collection).
         overwrite: replace an existing data set.
         progress: show a progress bar.
+        ray_address: run the attempts on Ray (``"local"``, ``"auto"`` or a cluster address);
+            ``None``: in this process.
     """
 
     tasks: tuple[str, ...]
@@ -60,6 +70,7 @@ class CollectConfig:
     append: bool = False
     overwrite: bool = False
     progress: bool = True
+    ray_address: str | None = None
 
 
 def _open_output(config: CollectConfig) -> DemoDataset:
@@ -114,15 +125,15 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
     if record.kept >= config.episodes:
         return record
     env_kwargs = {**_env_kwargs(config), **expert_env_kwargs(spec.name)}  # the expert's extra input is not stored
-    env = make_torchrl_env(spec.name, env_kwargs, seed=record.seed + record.attempts)
-    collector = Collector(
-        env, make_expert(spec.name), frames_per_batch=config.max_episode_steps,
-        trajs_per_batch=1, traj_format="cat", total_frames=-1,
-        auto_register_policy_transforms=False,  # the expert keeps its own state: leave the env as it is
-    )
+    first_seed = record.seed + record.attempts
+    if config.ray_address is None:
+        rollouts = _expert_episodes(spec.name, env_kwargs, first_seed, config.max_episode_steps)
+    else:
+        rollouts = _expert_episodes_on_ray(spec.name, env_kwargs, first_seed, config.max_episode_steps,
+                                           config.ray_address)
     bar = tqdm(total=config.episodes, initial=record.kept, desc=f"{spec.name} demos", disable=not config.progress)
     try:
-        for rollout in collector:
+        for rollout in rollouts:
             episode_seed = int(rollout["episode_seed"][0])
             record.attempts = episode_seed - record.seed + 1
             success = bool(rollout["next", "success"].any())
@@ -144,11 +155,52 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
                 break
     finally:
         bar.close()
-        collector.shutdown()
+        rollouts.close()  # stops the collector, or cancels the Ray jobs in flight
     if record.kept < config.episodes:
         message = f"{spec.name}: only {record.kept} successful episodes in {record.attempts} attempts"
         warnings.warn(message, stacklevel=2)
     return record
+
+
+def _expert_episodes(task: str, env_kwargs: dict[str, Any], first_seed: int, max_steps: int,
+                     ) -> Iterator[TensorDictBase]:
+    """The expert's episodes with seeds ``first_seed``, ``first_seed + 1``, ... (one rollout each)."""
+    env = make_torchrl_env(task, env_kwargs, seed=first_seed)
+    collector = Collector(
+        env, make_expert(task), frames_per_batch=max_steps, trajs_per_batch=1, traj_format="cat", total_frames=-1,
+        auto_register_policy_transforms=False,  # the expert keeps its own state: leave the env as it is
+    )
+    try:
+        yield from collector
+    finally:
+        collector.shutdown()
+
+
+def _expert_episode(task: str, env_kwargs: dict[str, Any], seed: int, max_steps: int) -> TensorDictBase:
+    """One Ray job: the expert's episode of ``seed`` (module-level: Ray imports it)."""
+    episodes = _expert_episodes(task, env_kwargs, seed, max_steps)
+    try:
+        return next(episodes)
+    finally:
+        episodes.close()
+
+
+def _expert_episodes_on_ray(task: str, env_kwargs: dict[str, Any], first_seed: int, max_steps: int,
+                            address: str) -> Iterator[TensorDictBase]:
+    """:func:`_expert_episodes` with every episode a Ray job, yielded in seed order."""
+    jobs = ((task, env_kwargs, seed, max_steps) for seed in itertools.count(first_seed))
+    arrived: dict[int, TensorDictBase] = {}
+    following = 0
+    with contextlib.closing(as_completed(_expert_episode, jobs, address)) as outcomes:  # closing cancels the rest
+        for index, outcome in outcomes:
+            if isinstance(outcome, Lost):
+                raise RuntimeError(f"{task}: the Ray worker of attempt seed {first_seed + index} died on every "
+                                   f"attempt ({outcome.reason}); the episodes before it are stored, rerun with "
+                                   "--append")
+            arrived[index] = outcome
+            while following in arrived:
+                yield arrived.pop(following)
+                following += 1
 
 
 def collect(config: CollectConfig) -> DemoDataset:
@@ -164,7 +216,7 @@ def collect(config: CollectConfig) -> DemoDataset:
     # directory is touched: --overwrite must not wipe a data set for a run that cannot start.
     gym.make(specs[0].env_id, **_env_kwargs(config)).close()
     refuse_foreign(Path(config.out))  # before the lock file is created in it
-    with exclusive_writer(config.out):
+    with ray_connection(config.ray_address), exclusive_writer(config.out):  # one Ray connection for every task
         dataset = _open_output(config)
         for spec in specs:
             record = collect_task(dataset, spec.name, config)

@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 import d2a_envs
 from collectors.envs import make_torchrl_env
+from collectors.ray_jobs import Lost, as_completed
 
 
 @dataclass
@@ -44,7 +45,7 @@ class EvaluationResult:
         seeds: the reset seed of each episode (seed, seed + 1, ...).
         success_steps: 1-based step at which ``success`` first became true, ``None`` if never.
         lengths: steps in each episode.
-        workers: worker processes used (1: in this process).
+        workers: worker processes used (1: in this process; on Ray: the number of jobs).
         seconds: wall time of the whole evaluation, worker start-up included.
         ended_on_success: episodes ended at their first success (success counts are unchanged).
     """
@@ -173,6 +174,8 @@ def evaluate(
     max_steps: int = d2a_envs.DEFAULT_MAX_EPISODE_STEPS,
     progress: bool = True,
     end_on_success: bool = False,
+    ray_address: str | None = None,
+    episodes_per_job: int = 10,
 ) -> EvaluationResult:
     """Run ``episodes`` complete episodes of ``task`` with a fresh policy from ``policy_factory``.
 
@@ -191,6 +194,11 @@ def evaluate(
         progress: show a progress bar over episodes.
         end_on_success: end each episode at its first success: the same success verdicts in
             less time (a successful policy's episodes are shorter); returns stop there.
+        ray_address: run on Ray instead (``"local"``, ``"auto"`` or a cluster address, see
+            :func:`~collectors.ray_jobs.ray_cluster`): blocks of ``episodes_per_job`` episodes
+            become Ray jobs of one CPU each; ``workers`` is then unused. The policy factory
+            (a checkpoint path in it) must be readable on every node.
+        episodes_per_job: episodes of one Ray job (each job builds its env and policy once).
 
     Reproducibility: each episode's layout (and point-cloud sampling) depends on its seed
     only, so for a deterministic policy (the scripted experts, a network in eval mode with
@@ -200,6 +208,9 @@ def evaluate(
     that samples from it (diffusion / flow noise) gets identical results for the same
     ``(seed, workers)``, but different ones when ``workers`` changes, unless it reseeds itself
     per episode from ``episode_seed``. numpy's global generator is not seeded.
+
+    The D2A policies and experts reseed their sampling from ``episode_seed`` at every episode
+    start, so their per-episode outcomes are the same for any ``workers`` and on Ray.
 
     Stateful policies (e.g. an observation history): the policy sees every step of an
     episode in order, in the process that built it, and episodes follow one another; it
@@ -221,9 +232,14 @@ def evaluate(
     env_kwargs = dict(env_kwargs or {})
     if "max_episode_steps" in env_kwargs:
         raise ValueError("pass the episode length as max_steps, not as env_kwargs['max_episode_steps']")
-    env_kwargs["max_episode_steps"] = max_steps
+    if episodes_per_job < 1:
+        raise ValueError(f"episodes_per_job must be positive, got {episodes_per_job}")
     name = d2a_envs.get_task(task).name  # fails early on unknown names
     seeds = list(range(seed, seed + episodes))
+    if ray_address is not None:
+        return _evaluate_on_ray(policy_factory, name, seeds, env_kwargs, max_steps, progress, end_on_success,
+                                ray_address, episodes_per_job)
+    env_kwargs["max_episode_steps"] = max_steps
     workers = min(workers, episodes)
     blocks = _split(seeds, workers)
     tally = _EpisodeTally(blocks)
@@ -259,6 +275,50 @@ def evaluate(
         success_steps=[episode.success_step for episode in done],
         lengths=[episode.length for episode in done],
         workers=workers,
+        seconds=time.perf_counter() - start,
+        ended_on_success=end_on_success,
+    )
+
+
+def _evaluate_block(
+    policy_factory: Callable[[], Callable[[TensorDictBase], TensorDictBase]], task: str, seeds: list[int],
+    env_kwargs: dict[str, Any], max_steps: int, end_on_success: bool,
+) -> EvaluationResult:
+    """One Ray job: consecutive episodes in the worker's process (module-level: Ray imports it)."""
+    return evaluate(policy_factory, task, len(seeds), seeds[0], env_kwargs, workers=1, max_steps=max_steps,
+                    progress=False, end_on_success=end_on_success)
+
+
+def _evaluate_on_ray(
+    policy_factory: Callable[[], Callable[[TensorDictBase], TensorDictBase]], task: str, seeds: list[int],
+    env_kwargs: dict[str, Any], max_steps: int, progress: bool, end_on_success: bool, address: str,
+    episodes_per_job: int,
+) -> EvaluationResult:
+    """:func:`evaluate` as Ray jobs of ``episodes_per_job`` episodes, merged in seed order."""
+    blocks = [seeds[start:start + episodes_per_job] for start in range(0, len(seeds), episodes_per_job)]
+    jobs = [(policy_factory, task, block, env_kwargs, max_steps, end_on_success) for block in blocks]
+    start = time.perf_counter()
+    parts: dict[int, EvaluationResult] = {}
+    lost: list[int] = []
+    with tqdm(total=len(seeds), desc=f"eval {task} on Ray", unit="ep", disable=not progress) as bar:
+        for index, outcome in as_completed(_evaluate_block, jobs, address):
+            if isinstance(outcome, Lost):
+                lost.extend(blocks[index])
+            else:
+                parts[index] = outcome
+            bar.update(len(blocks[index]))
+    if lost:
+        raise RuntimeError(f"{task}: the Ray workers of episode seeds {sorted(lost)} died on every attempt; "
+                           "their episodes are missing (the others finished)")
+    done = [parts[index] for index in range(len(blocks))]
+    return EvaluationResult(
+        task=task,
+        successes=[s for part in done for s in part.successes],
+        returns=[r for part in done for r in part.returns],
+        seeds=seeds,
+        success_steps=[s for part in done for s in part.success_steps],
+        lengths=[n for part in done for n in part.lengths],
+        workers=len(blocks),
         seconds=time.perf_counter() - start,
         ended_on_success=end_on_success,
     )

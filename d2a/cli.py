@@ -50,6 +50,12 @@ def _add_env_options(parser: argparse.ArgumentParser, several_tasks: bool = Fals
     parser.add_argument("--hide-sites", action="store_true", help="leave MuJoCo sites (goal markers) out")
 
 
+def _add_ray_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                        help="run the episodes (or cells) as Ray jobs: alone, on a Ray instance started on this "
+                             "machine; 'auto': the running cluster; or a cluster address (needs the ray extra)")
+
+
 def _replace_given(instance: Any, **changes: object) -> Any:
     """``dataclasses.replace`` with the options the user gave (``None``: keep the default)."""
     return dataclasses.replace(instance, **{k: v for k, v in changes.items() if v is not None})
@@ -93,7 +99,7 @@ def cmd_collect(args: argparse.Namespace) -> None:
 
     config = _replace_given(
         CollectConfig(tasks=tuple(args.task), out=args.out, env_kwargs=_env_kwargs(args), append=args.append,
-                      overwrite=args.overwrite),
+                      overwrite=args.overwrite, ray_address=args.ray),
         episodes=args.episodes, seed=args.seed, max_attempts_factor=args.max_attempts_factor,
         max_episode_steps=args.max_episode_steps,
     )
@@ -167,7 +173,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
         result = evaluate(functools.partial(make_expert, args.task), args.task, args.episodes, args.seed,
                           env_kwargs={**env_kwargs, **expert_env_kwargs(args.task)}, workers=args.workers,
-                          end_on_success=args.end_on_success)
+                          end_on_success=args.end_on_success, ray_address=args.ray)
     else:
         from d2a_agents.policy.checkpoints import evaluate_checkpoint
 
@@ -175,7 +181,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
             raise ValueError(f"{args.policy} is evaluated in the env it was trained with; "
                              f"the env options ({', '.join(env_kwargs)}) apply to --policy expert only")
         result = evaluate_checkpoint(args.policy, args.task, args.episodes, args.seed, workers=args.workers,
-                                     end_on_success=args.end_on_success)
+                                     end_on_success=args.end_on_success, ray_address=args.ray)
     print(result.summary())
 
 
@@ -184,7 +190,7 @@ def cmd_bench_experts(args: argparse.Namespace) -> None:
 
     base = ExpertBenchConfig()
     run(_replace_given(base, tasks=tuple(args.task) if args.task else None, episodes=args.episodes,
-                       workers=args.workers))
+                       workers=args.workers, ray_address=args.ray))
 
 
 def cmd_bench_latency(args: argparse.Namespace) -> None:
@@ -246,7 +252,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         base, policy=_replace_given(base.policy, steps=args.steps), tasks=tuple(args.task) if args.task else None,
         algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
         workdir=args.workdir, workers=args.workers, env_kwargs=env_kwargs or None, world_model=world_model,
-        world_model_steps=args.wm_steps,
+        world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray,
     ))
 
 
@@ -308,6 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
     mode = collect.add_mutually_exclusive_group()
     mode.add_argument("--append", action="store_true", help="add to (or resume) an existing data set")
     mode.add_argument("--overwrite", action="store_true", help="replace an existing data set")
+    _add_ray_option(collect)
     collect.set_defaults(func=cmd_collect)
 
     train_wm = commands.add_parser("train-wm", help="train the triplane world model on a data set")
@@ -386,6 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--workers", type=POSITIVE, default=2)
     evaluation.add_argument("--end-on-success", action="store_true",
                             help="end episodes at their first success (same success rate, faster; returns stop there)")
+    _add_ray_option(evaluation)
     evaluation.set_defaults(func=cmd_eval)
 
     data = commands.add_parser("data", help="data sets").add_subparsers(dest="what", required=True)
@@ -397,6 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_experts.add_argument("--task", action="append", default=None, help="default: all 50 Meta-World tasks")
     bench_experts.add_argument("--episodes", type=POSITIVE, default=None)
     bench_experts.add_argument("--workers", type=POSITIVE, default=None)
+    _add_ray_option(bench_experts)
     bench_experts.set_defaults(func=cmd_bench_experts)
 
     bench_latency = bench.add_parser("latency", help="batch-1 CPU latency: MeanFlow 1 NFE vs DDIM 10 NFE, imagination")
@@ -465,6 +474,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench_success.add_argument("--wm-steps", type=POSITIVE, default=None, help="world-model training steps")
     bench_success.add_argument("--workdir", default=None,
                                help="data, models and finished cells; a rerun resumes")
+    bench_success.add_argument("--threads", type=POSITIVE, default=None,
+                               help="torch threads per cell; on Ray, the CPUs each cell asks for (default 1)")
+    _add_ray_option(bench_success)
     bench_success.set_defaults(func=cmd_bench_success)
 
     demo = commands.add_parser("demo", help="end to end on Hammer: collect, world model, D2A policy, evaluate")
@@ -486,6 +498,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     try:
         args.func(args)
     except (ValueError, FloatingPointError) as error:  # bad input or a diverged run: say what, no traceback
+        sys.exit(f"d2a: error: {error}")
+    except ImportError as error:
+        if error.name != "ray":  # an optional dependency the command asked for; anything else is a bug
+            raise
         sys.exit(f"d2a: error: {error}")
 
 

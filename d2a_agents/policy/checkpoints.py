@@ -68,19 +68,20 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
 
 def evaluate_checkpoint(
     path: str | Path, task: str, episodes: int, seed: int, workers: int = 1, progress: bool = True,
-    end_on_success: bool = False,
+    end_on_success: bool = False, ray_address: str | None = None,
 ) -> EvaluationResult:
     """Evaluate a checkpoint's EMA policy on ``task`` in the env it was trained with (its
     point-cloud settings, its world model when it imagines); a task it was not trained on,
-    or a checkpoint it cannot read, is refused before any worker starts. ``end_on_success``:
-    see :func:`~collectors.evaluation.evaluate`."""
+    or a checkpoint it cannot read, is refused before any worker starts. ``end_on_success``,
+    ``ray_address``: see :func:`~collectors.evaluation.evaluate` (on Ray, the checkpoint and
+    its world model must be readable on every node)."""
     _, payload = load_policy(path)
     name = get_task(task).name
     if name not in payload["env_kwargs"]:
         raise ValueError(f"{path} was trained on {payload['tasks']}, not on {name}")
     return evaluate(functools.partial(load_torchrl_policy, path), name, episodes, seed,
                     env_kwargs=eval_env_kwargs(payload, name), workers=workers, progress=progress,
-                    end_on_success=end_on_success)
+                    end_on_success=end_on_success, ray_address=ray_address)
 
 
 def imaginer_tasks(world_model: str | Path) -> list[str]:
