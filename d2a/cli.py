@@ -256,6 +256,15 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
     ))
 
 
+def cmd_bench_ray(args: argparse.Namespace) -> None:
+    from benchmarks.ray_scaling import RayScalingConfig, run
+
+    base = RayScalingConfig()
+    run(_replace_given(base, task=args.task, algo=args.algo, seeds=tuple(args.seed) if args.seed else None,
+                       cpus=tuple(args.cpus) if args.cpus else None, workdir=args.workdir,
+                       policy=_replace_given(base.policy, steps=args.steps)))
+
+
 def cmd_demo(args: argparse.Namespace) -> None:
     from d2a.demo import DemoConfig, run_demo
 
@@ -478,6 +487,15 @@ def build_parser() -> argparse.ArgumentParser:
                                help="torch threads per cell; on Ray, the CPUs each cell asks for (default 1)")
     _add_ray_option(bench_success)
     bench_success.set_defaults(func=cmd_bench_success)
+
+    bench_ray = bench.add_parser("ray", help="the same small bench success grid on 1 and 2 Ray CPUs: wall time")
+    bench_ray.add_argument("--task", default=None, help="default: reach")
+    bench_ray.add_argument("--algo", choices=ALGOS, default=None, help="default: mp1")
+    bench_ray.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="cells (default 0-3)")
+    bench_ray.add_argument("--cpus", type=POSITIVE, action="append", default=None, help="Ray CPUs (default 1, 2)")
+    bench_ray.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default 300)")
+    bench_ray.add_argument("--workdir", default=None)
+    bench_ray.set_defaults(func=cmd_bench_ray)
 
     demo = commands.add_parser("demo", help="end to end on Hammer: collect, world model, D2A policy, evaluate")
     demo.add_argument("--task", default=None, help="default: hammer")

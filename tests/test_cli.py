@@ -172,6 +172,7 @@ def test_defaults_live_in_the_configs_alone(captured, monkeypatch):
     (["bench", "latency"], "benchmarks.latency", "LatencyBenchConfig"),
     (["bench", "train"], "benchmarks.train", "TrainBenchConfig"),
     (["bench", "ablate", "--data", "d", "--task", "hammer"], "benchmarks.ablation", "AblationConfig"),
+    (["bench", "ray"], "benchmarks.ray_scaling", "RayScalingConfig"),
 ])
 def test_bench_defaults_live_in_their_configs(argv, module, config, monkeypatch):
     import importlib
@@ -191,3 +192,22 @@ def test_bench_success_bench_wm_and_demo_defaults_live_in_their_configs(captured
     assert captured["config"] == benchmarks.world_model.WorldModelBenchConfig()
     main(["demo"])
     assert captured["config"] == d2a.demo.DemoConfig()
+
+
+def test_ray_option_takes_an_optional_address(captured, monkeypatch):
+    import collectors.collect
+
+    class Stop(Exception):
+        pass
+
+    def collect(config):
+        captured["config"] = config
+        raise Stop
+
+    monkeypatch.setattr(collectors.collect, "collect", collect)
+    for flags, address in (([], None), (["--ray"], "local"), (["--ray", "auto"], "auto")):
+        with pytest.raises(Stop):
+            main(["collect", "--task", "reach", "--out", "o", *flags])
+        assert captured["config"].ray_address == address
+    main(["bench", "success", "--ray", "ray://head:10001", "--threads", "2"])
+    assert (captured["config"].ray_address, captured["config"].threads) == ("ray://head:10001", 2)
