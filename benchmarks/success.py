@@ -195,6 +195,7 @@ def _run_locally(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -
 def _run_on_ray(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -> dict[tuple[str, str, int], Cell]:
     """The unfinished cells as Ray jobs (world models first, one job per task); each cell is
     stored by the driver as it arrives; cells lost on every retry are reported, not stored."""
+    config = dataclasses.replace(config, workdir=str(Path(config.workdir).resolve()))  # the same for every worker
     with ray_cluster(config.ray_address) as ray:
         gpus = 1 if cluster_gpus(ray) else 0
         device = "cuda" if gpus else "cpu"

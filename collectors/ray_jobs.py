@@ -20,6 +20,7 @@ Example:
 from __future__ import annotations
 
 import contextlib
+import logging
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from types import ModuleType
@@ -54,7 +55,8 @@ def ray_cluster(address: str = LOCAL) -> Iterator[ModuleType]:
     if ray.is_initialized():
         yield ray
         return
-    ray.init(address=None if address == LOCAL else address, include_dashboard=False, log_to_driver=False)
+    ray.init(address=None if address == LOCAL else address, include_dashboard=False, log_to_driver=False,
+             logging_level=logging.WARNING)  # the command's own bar and lines, not Ray's start-up chatter
     try:
         yield ray
     finally:

@@ -61,7 +61,7 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
             raise CheckpointError(f"the policy's world model {world_model} is missing")
         if file_sha256(world_model) != payload.get("world_model_sha256"):
             raise CheckpointError(f"the policy's world model {world_model} has changed since the policy was trained")
-        kwargs["world_model"] = world_model
+        kwargs["world_model"] = str(Path(world_model).resolve())
         kwargs["imagined_points"] = payload["policy_config"]["num_points"]  # what the policy reads
     return kwargs
 
@@ -79,6 +79,7 @@ def evaluate_checkpoint(
     name = get_task(task).name
     if name not in payload["env_kwargs"]:
         raise ValueError(f"{path} was trained on {payload['tasks']}, not on {name}")
+    path = policy_file(path).resolve()  # a worker on Ray may start elsewhere
     return evaluate(functools.partial(load_torchrl_policy, path), name, episodes, seed,
                     env_kwargs=eval_env_kwargs(payload, name), workers=workers, progress=progress,
                     end_on_success=end_on_success, ray_address=ray_address)
