@@ -272,7 +272,7 @@ def cmd_demo(args: argparse.Namespace) -> None:
     run_demo(_replace_given(
         base, task=args.task, out=args.out, episodes=args.episodes, world_model_steps=args.wm_steps,
         policy=_replace_given(base.policy, steps=args.policy_steps), eval_episodes=args.eval_episodes,
-        seed=args.seed,
+        seed=args.seed, threads=args.threads,
     ))
 
 
@@ -505,6 +505,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--policy-steps", type=POSITIVE, default=None)
     demo.add_argument("--eval-episodes", type=POSITIVE, default=None)
     demo.add_argument("--seed", type=NON_NEGATIVE, default=None)
+    demo.add_argument("--threads", type=POSITIVE, default=None, help="torch threads of the trainings (default 1)")
     demo.set_defaults(func=cmd_demo)
     return parser
 

@@ -34,6 +34,9 @@ class DemoConfig:
     policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget
     eval_episodes: int = 20
     eval_workers: int = 1
+    # torch threads of both trainings: the narrow cpu-preset networks train faster on one
+    # thread than on two of a 2-core machine (docs/results.md)
+    threads: int = 1
     env_kwargs: dict[str, object] = field(default_factory=dict)  # gym.make options: image_size, num_points...
 
 
@@ -48,12 +51,14 @@ def run_demo(config: DemoConfig = DemoConfig()) -> dict[str, float]:
     _, wm_history = train_world_model(TrainWorldModelConfig(
         data=str(data), out=str(world_model), model=config.world_model, steps=config.world_model_steps,
         validate_every=max(1, config.world_model_steps // 3), validation_stride=2, seed=config.seed,
+        threads=config.threads,
     ))
     print("3/4 training the policy")
     preset = config.policy
     run = out / preset.policy.algo
     train_policy(TrainPolicyConfig.from_preset(
         preset, data=str(data), out=str(run), world_model=str(world_model), eval_episodes=0, seed=config.seed,
+        threads=config.threads,
     ))
     print(f"4/4 evaluating on {config.eval_episodes} new layouts")
     result = evaluate_checkpoint(run / CHECKPOINT_NAME, config.task, config.eval_episodes, seed=100_000,
