@@ -32,6 +32,23 @@ def captured(monkeypatch) -> dict[str, object]:
     return seen
 
 
+class CollectStopped(Exception):
+    """Raised by the stand-in for ``collect`` (the command would go on to read the data set)."""
+
+
+@pytest.fixture
+def collect_config(captured, monkeypatch) -> dict[str, object]:
+    """``captured``, and ``d2a collect`` records its configuration, then raises CollectStopped."""
+    import collectors.collect
+
+    def collect(config):
+        captured["config"] = config
+        raise CollectStopped
+
+    monkeypatch.setattr(collectors.collect, "collect", collect)
+    return captured
+
+
 def test_train_policy_defaults_to_the_cpu_preset_and_flags_override_it(captured):
     main(["train-policy", "--data", "d", "--out", "o", "--algo", "mp1", "--steps", "7"])
     config = captured["config"]
@@ -141,29 +158,19 @@ def test_integer_flags_are_checked_before_any_work(captured, capsys, argv, messa
     assert "config" not in captured  # the command never ran
 
 
-def test_defaults_live_in_the_configs_alone(captured, monkeypatch):
+def test_defaults_live_in_the_configs_alone(collect_config):
     """With only the required options, each command builds exactly its config's defaults."""
-    import collectors.collect
     from collectors.collect import CollectConfig
     from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig
     from d2a_agents.world_model.train import TrainWorldModelConfig
 
     main(["train-wm", "--data", "d", "--out", "o.pt"])
-    assert captured["config"] == TrainWorldModelConfig(data="d", out="o.pt")
+    assert collect_config["config"] == TrainWorldModelConfig(data="d", out="o.pt")
     main(["train-policy", "--data", "d", "--out", "o"])
-    assert captured["config"] == TrainPolicyConfig.from_preset(POLICY_PRESETS["cpu"], data="d", out="o")
-
-    class Stop(Exception):
-        pass
-
-    def collect(config):
-        captured["config"] = config
-        raise Stop
-
-    monkeypatch.setattr(collectors.collect, "collect", collect)
-    with pytest.raises(Stop):
+    assert collect_config["config"] == TrainPolicyConfig.from_preset(POLICY_PRESETS["cpu"], data="d", out="o")
+    with pytest.raises(CollectStopped):
         main(["collect", "--task", "reach", "--out", "o"])
-    assert captured["config"] == CollectConfig(tasks=("reach",), out="o")
+    assert collect_config["config"] == CollectConfig(tasks=("reach",), out="o")
 
 
 @pytest.mark.parametrize("argv, module, config", [
@@ -194,20 +201,10 @@ def test_bench_success_bench_wm_and_demo_defaults_live_in_their_configs(captured
     assert captured["config"] == d2a.demo.DemoConfig()
 
 
-def test_ray_option_takes_an_optional_address(captured, monkeypatch):
-    import collectors.collect
-
-    class Stop(Exception):
-        pass
-
-    def collect(config):
-        captured["config"] = config
-        raise Stop
-
-    monkeypatch.setattr(collectors.collect, "collect", collect)
+def test_ray_option_takes_an_optional_address(collect_config):
     for flags, address in (([], None), (["--ray"], "local"), (["--ray", "auto"], "auto")):
-        with pytest.raises(Stop):
+        with pytest.raises(CollectStopped):
             main(["collect", "--task", "reach", "--out", "o", *flags])
-        assert captured["config"].ray_address == address
+        assert collect_config["config"].ray_address == address
     main(["bench", "success", "--ray", "ray://head:10001", "--threads", "2"])
-    assert (captured["config"].ray_address, captured["config"].threads) == ("ray://head:10001", 2)
+    assert (collect_config["config"].ray_address, collect_config["config"].threads) == ("ray://head:10001", 2)
