@@ -38,7 +38,7 @@ from tqdm import tqdm
 from collectors.atomic import atomic_write_text
 from collectors.collect import CollectConfig, collect
 from collectors.evaluation import honest_protocol, paper_protocol
-from collectors.ray_jobs import Lost, as_completed, cluster_gpus, ray_cluster
+from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
 from collectors.storage import DemoDataset
 from d2a_agents.policy.agent import uses_imagination
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, evaluate_checkpoint
@@ -206,7 +206,7 @@ def _run_on_ray(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) ->
             jobs = [(config, task, data[task], device) for task in tasks]
             for index, outcome in as_completed(_world_model, jobs, num_cpus=config.threads, num_gpus=gpus):
                 if isinstance(outcome, Lost):
-                    raise RuntimeError(f"{tasks[index]}: the world model's Ray worker died on every attempt "
+                    raise JobsLost(f"{tasks[index]}: the world model's Ray worker died on every attempt "
                                        f"({outcome.reason}); rerun to resume it")
                 world_models[tasks[index]] = outcome
         done, lost = {}, []

@@ -30,7 +30,7 @@ import d2a_envs
 from collectors.atomic import exclusive_writer, holds_only_lock
 from collectors.envs import make_torchrl_env
 from collectors.experts import expert_env_kwargs, make_expert
-from collectors.ray_jobs import Lost, as_completed, ray_connection
+from collectors.ray_jobs import JobsLost, Lost, as_completed, ray_connection
 from collectors.storage import (
     CollectionRecord,
     DatasetError,
@@ -194,7 +194,7 @@ def _expert_episodes_on_ray(task: str, env_kwargs: dict[str, Any], first_seed: i
     with contextlib.closing(as_completed(_expert_episode, jobs, address)) as outcomes:  # closing cancels the rest
         for index, outcome in outcomes:
             if isinstance(outcome, Lost):
-                raise RuntimeError(f"{task}: the Ray worker of attempt seed {first_seed + index} died on every "
+                raise JobsLost(f"{task}: the Ray worker of attempt seed {first_seed + index} died on every "
                                    f"attempt ({outcome.reason}); the episodes before it are stored, rerun with "
                                    "--append")
             arrived[index] = outcome

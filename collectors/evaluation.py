@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 import d2a_envs
 from collectors.envs import make_torchrl_env
-from collectors.ray_jobs import Lost, as_completed
+from collectors.ray_jobs import JobsLost, Lost, as_completed
 
 
 @dataclass
@@ -308,7 +308,7 @@ def _evaluate_on_ray(
                 parts[index] = outcome
             bar.update(len(blocks[index]))
     if lost:
-        raise RuntimeError(f"{task}: the Ray workers of episode seeds {sorted(lost)} died on every attempt; "
+        raise JobsLost(f"{task}: the Ray workers of episode seeds {sorted(lost)} died on every attempt; "
                            "their episodes are missing (the others finished)")
     done = [parts[index] for index in range(len(blocks))]
     return EvaluationResult(

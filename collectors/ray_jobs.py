@@ -69,6 +69,10 @@ def ray_connection(address: str | None) -> contextlib.AbstractContextManager:
     return contextlib.nullcontext() if address is None else ray_cluster(address)
 
 
+class JobsLost(RuntimeError):
+    """Ray jobs whose workers died on every attempt: the command names what is missing."""
+
+
 @dataclass(frozen=True)
 class Lost:
     """A job whose worker died ``attempts`` times (killed, out of memory, node lost)."""

@@ -8,6 +8,8 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from collectors.ray_jobs import JobsLost  # the standard library only: `d2a --help` stays fast
+
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
 ALGOS = ("d2a", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "mp1", "dp3", "mp1-state")
 
@@ -516,7 +518,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
-    except (ValueError, FloatingPointError) as error:  # bad input or a diverged run: say what, no traceback
+    except (ValueError, FloatingPointError, JobsLost) as error:  # bad input, a diverged run, Ray workers lost
         sys.exit(f"d2a: error: {error}")
     except ImportError as error:
         if error.name != "ray":  # an optional dependency the command asked for; anything else is a bug

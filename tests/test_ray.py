@@ -15,7 +15,7 @@ import benchmarks.success as bench
 from collectors.collect import CollectConfig, collect
 from collectors.evaluation import evaluate
 from collectors.experts import make_expert
-from collectors.ray_jobs import INSTALL_HINT, Lost, as_completed, import_ray
+from collectors.ray_jobs import INSTALL_HINT, JobsLost, Lost, as_completed, import_ray
 from collectors.storage import DemoDataset
 from d2a.cli import main
 from d2a_agents.policy.agent import PolicyConfig
@@ -99,6 +99,15 @@ def test_a_worker_that_dies_is_retried_then_reported_lost(ray_instance, tmp_path
 
     ((index, outcome),) = as_completed(always_dies, [()], max_retries=1)
     assert index == 0 and isinstance(outcome, Lost) and outcome.attempts == 2
+
+
+def test_an_evaluation_whose_worker_always_dies_names_the_missing_episodes(ray_instance):
+    def policy_that_kills_its_worker():
+        os._exit(1)
+
+    with pytest.raises(JobsLost, match=r"episode seeds \[5, 6\]"):
+        evaluate(policy_that_kills_its_worker, "reach", 2, 5, ENV_KWARGS, max_steps=10, progress=False,
+                 ray_address="local")
 
 
 def test_an_error_raised_by_a_job_reaches_the_caller(ray_instance):
