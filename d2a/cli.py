@@ -507,7 +507,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--policy-steps", type=POSITIVE, default=None)
     demo.add_argument("--eval-episodes", type=POSITIVE, default=None)
     demo.add_argument("--seed", type=NON_NEGATIVE, default=None)
-    demo.add_argument("--threads", type=POSITIVE, default=None, help="torch threads of the trainings (default 1)")
+    demo.add_argument("--threads", type=POSITIVE, default=None,
+                      help="torch threads of the trainings (default: torch's own; 1 beside other busy work)")
     demo.set_defaults(func=cmd_demo)
     return parser
 

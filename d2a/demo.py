@@ -34,9 +34,9 @@ class DemoConfig:
     policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget
     eval_episodes: int = 20
     eval_workers: int = 1
-    # torch threads of both trainings: the narrow cpu-preset networks train faster on one
-    # thread than on two of a 2-core machine (docs/results.md)
-    threads: int = 1
+    # torch threads of both trainings (0: torch's own, every core). Alone on a 2-core machine
+    # two threads train the demo's policy in 198 s, one in 292 s; beside other busy work, use 1.
+    threads: int = 0
     env_kwargs: dict[str, object] = field(default_factory=dict)  # gym.make options: image_size, num_points...
 
 
