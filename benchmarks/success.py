@@ -207,7 +207,7 @@ def _run_on_ray(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) ->
             for index, outcome in as_completed(_world_model, jobs, num_cpus=config.threads, num_gpus=gpus):
                 if isinstance(outcome, Lost):
                     raise JobsLost(f"{tasks[index]}: the world model's Ray worker died on every attempt "
-                                       f"({outcome.reason}); rerun to resume it")
+                                   f"({outcome.reason}); rerun to resume it")
                 world_models[tasks[index]] = outcome
         done, lost = {}, []
         jobs = [(config, task, algo, seed, data[task], world_models[task], device, 1) for task, algo, seed in todo]
