@@ -29,7 +29,8 @@ ENV_KWARGS = {"image_size": 48, "num_points": 128}
 @pytest.fixture(scope="module")
 def ray_instance():
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    # a small object store: the jobs pass tensordicts of a few MB, and CI's /dev/shm may be small
+    ray.init(num_cpus=2, object_store_memory=200 * 1024**2, include_dashboard=False, log_to_driver=False)
     yield ray
     ray.shutdown()
 
