@@ -19,7 +19,7 @@ from pathlib import Path
 from benchmarks.success import Cell, SuccessBenchConfig
 from benchmarks.success import run as run_bench
 from collectors.collect import CollectConfig, collect
-from collectors.ray_jobs import import_ray
+from collectors.ray_jobs import LOCAL, import_ray, ray_cluster
 from collectors.storage import DemoDataset
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset
 
@@ -48,8 +48,7 @@ def _outcomes(cells: list[Cell]) -> list[tuple]:
 
 def run(config: RayScalingConfig = RayScalingConfig()) -> list[dict[str, object]]:
     """Time the grid on each CPU count; prints the table and returns its rows."""
-    ray = import_ray()
-    if ray.is_initialized():
+    if import_ray().is_initialized():
         raise ValueError("bench ray starts its own Ray instances: call it without a Ray connection")
     workdir = Path(config.workdir)
     data = workdir / "data" / config.task
@@ -68,11 +67,8 @@ def run(config: RayScalingConfig = RayScalingConfig()) -> list[dict[str, object]
         )
         load = os.getloadavg()[0]
         start = time.perf_counter()
-        ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False)
-        try:
+        with ray_cluster(LOCAL, num_cpus=cpus):  # the bench's jobs use this instance
             cells = run_bench(bench)
-        finally:
-            ray.shutdown()
         rows.append(dict(cpus=cpus, seconds=time.perf_counter() - start, load=load, outcomes=_outcomes(cells)))
     print(f"\n{len(config.seeds)} cells ({config.algo} on {config.task}, {config.policy.steps} steps x batch "
           f"{config.policy.batch_size}, {config.evaluations} evaluation(s) of {config.eval_episodes} + "

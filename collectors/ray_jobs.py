@@ -41,22 +41,24 @@ def import_ray() -> ModuleType:
 
 
 @contextlib.contextmanager
-def ray_cluster(address: str = LOCAL) -> Iterator[ModuleType]:
+def ray_cluster(address: str = LOCAL, num_cpus: int | None = None) -> Iterator[ModuleType]:
     """Be connected to Ray for the duration of the block.
 
-    ``address``: ``"local"`` starts a Ray instance on this machine (all its cores), ``"auto"``
-    joins the cluster this machine belongs to, anything else is passed to ``ray.init`` (e.g.
-    ``ray://head:10001``). If the caller is already connected (``ray.init`` was called, e.g.
-    with ``num_cpus=2``), that connection is used as it is and left open.
+    ``address``: ``"local"`` starts a Ray instance on this machine (``num_cpus`` of its cores,
+    default all), ``"auto"`` joins the cluster this machine belongs to, anything else is passed
+    to ``ray.init`` (e.g. ``ray://head:10001``). If the caller is already connected (``ray.init``
+    was called, e.g. with ``num_cpus=2``), that connection is used as it is and left open.
     """
     if not address:
         raise ValueError("a Ray address must be 'local', 'auto' or a cluster address")
+    if num_cpus is not None and address != LOCAL:
+        raise ValueError("num_cpus sizes a local Ray instance; a cluster has its own")
     ray = import_ray()
     if ray.is_initialized():
         yield ray
         return
-    ray.init(address=None if address == LOCAL else address, include_dashboard=False, log_to_driver=False,
-             logging_level=logging.WARNING)  # the command's own bar and lines, not Ray's start-up chatter
+    ray.init(address=None if address == LOCAL else address, num_cpus=num_cpus, include_dashboard=False,
+             log_to_driver=False, logging_level=logging.WARNING)  # the command's own lines, not Ray's chatter
     try:
         yield ray
     finally:
