@@ -23,6 +23,7 @@ from d2a_agents.world_model.metrics import IoUAccumulator, iou_from_counts, voxe
 from d2a_agents.world_model.triplane import (
     FEATURE_MODES,
     TriplaneWorldModel,
+    VoxelDecoder,
     WorldModelConfig,
     positional_embedding,
     sample_plane,
@@ -673,10 +674,12 @@ def test_imaginer_decodes_the_imagined_voxels_keeping_observed_points_if_asked(k
     ("triplane", "point-scatter", True), ("xy", "point-scatter", True), ("triplane", "volume-conv", False),
     ("volume", "volume-conv", True),
 ])
-def test_voxel_decoder_equals_the_generic_decoder_at_voxel_centres(mode, encoder, skip):
+@pytest.mark.parametrize("chunk", [4096, 48])
+def test_voxel_decoder_equals_the_generic_decoder_at_voxel_centres(mode, encoder, skip, chunk, monkeypatch):
     """The table decoder (first layer split per plane cell and axis) against decode(): bilinear
     plane sampling, the full positional embedding and the whole MLP at every voxel centre, with
-    random weights large enough that every term matters."""
+    random weights large enough that every term matters; in one chunk and in chunks of 48."""
+    monkeypatch.setattr(VoxelDecoder, "CHUNK", chunk)
     torch.manual_seed(0)
     config = WorldModelConfig(resolution=(10, 8, 4), channels=8, feature_mode=mode, encoder=encoder,
                               occupancy_skip=skip, pe_frequencies=3)
