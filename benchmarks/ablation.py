@@ -66,6 +66,7 @@ CHANGES: dict[str, Callable[[TrainPolicyConfig], TrainPolicyConfig]] = {
     "steps-8000": _training(steps=8000),
     "trim-after-success-10": _training(trim_after_success=10),
     "keep-after-success": _training(trim_after_success=-1),  # every frame after success, as before
+    "shift-2cm": _training(augment_shift=0.02),  # clouds and end effector moved together, up to 2 cm per axis
     "diffusion-epsilon": _policy(diffusion_prediction="epsilon"),  # for --algo dp3
     "cfg-amplify": _policy(cfg_guidance="amplify"),  # for the CFG variants
     "previous-preset": _previous_preset,

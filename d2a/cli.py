@@ -38,6 +38,14 @@ def _int_at_least(minimum: int) -> Callable[[str], int]:
 POSITIVE, NON_NEGATIVE = _int_at_least(1), _int_at_least(0)
 
 
+def NON_NEGATIVE_FLOAT(text: str) -> float:  # noqa: N802 (an argparse type, named like the two above)
+    """An argparse type: a finite number >= 0."""
+    value = float(text)
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
 def _add_env_options(parser: argparse.ArgumentParser, several_tasks: bool = False) -> None:
     if several_tasks:
         parser.add_argument("--task", action="append", required=True, help="task name or env id; repeat for several")
@@ -159,6 +167,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                                       world_model=args.world_model),
         eval_every=args.eval_every, eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
         holdout_episodes=args.holdout_episodes, device=args.device, threads=args.threads, logger=args.logger,
+        augment_shift=args.augment_shift,
     )
     _, history = train_policy(config)
     for point in history:
@@ -385,6 +394,9 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--trim-after-success", type=int, default=None, metavar="K",
                               help="keep K frames after each demonstration's first success (-1: all; "
                                    "default: the preset's)")
+    train_policy.add_argument("--augment-shift", type=NON_NEGATIVE_FLOAT, default=None, metavar="METRES",
+                              help="move each training window's clouds and end effector by a random translation "
+                                   "of up to this per axis (Meta-World; default 0: off)")
     train_policy.add_argument("--logger", default=None, choices=["csv", "tensorboard", "wandb", "mlflow", ""],
                               help="TorchRL logger of the scalars under OUT/logs ('': none; default csv)")
     train_policy.add_argument("--holdout-episodes", type=NON_NEGATIVE, default=None,

@@ -61,6 +61,12 @@ def test_train_policy_defaults_to_the_cpu_preset_and_flags_override_it(captured)
     assert captured["config"].trim_after_success == -1
     main(["train-policy", "--data", "d", "--out", "o", "--preset", "paper"])
     assert captured["config"].trim_after_success == -1  # the paper trains on every frame
+    assert captured["config"].augment_shift == 0.0
+    main(["train-policy", "--data", "d", "--out", "o", "--augment-shift", "0.02"])
+    assert captured["config"].augment_shift == 0.02
+    for bad in ("-0.01", "inf", "nan"):
+        with pytest.raises(SystemExit):
+            main(["train-policy", "--data", "d", "--out", "o", "--augment-shift", bad])
 
 
 def test_train_policy_state_reference_device_threads_and_holdout(captured):

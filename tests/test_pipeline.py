@@ -203,3 +203,42 @@ def test_a_multi_task_run_evaluates_every_task(tmp_path):
                           progress=False))
     _, history = train_policy(policy_config("mp1", str(data), tmp_path / "run"))
     assert sorted((point.step, point.task) for point in history) == [(3, "button-press"), (3, "reach")]
+
+
+def test_shifted_windows_move_clouds_and_end_effector_together():
+    """Against a hand computation: per window one offset, the same for every point and step of
+    both clouds and for agent_pos's xyz; the gripper opening and the colour channels untouched."""
+    from d2a_agents.policy.train import shift_windows
+
+    torch.manual_seed(0)
+    observation = {"point_cloud": torch.randn(5, 2, 7, 6), "imagined_point_cloud": torch.randn(5, 2, 7, 3),
+                   "agent_pos": torch.randn(5, 2, 4)}
+    original = {key: value.clone() for key, value in observation.items()}
+    shifted = shift_windows(observation, 0.02, torch.Generator().manual_seed(3))
+    offset = shifted["agent_pos"][:, 0, :3] - observation["agent_pos"][:, 0, :3]  # (5, 3)
+    assert (offset.abs() <= 0.02).all() and offset.abs().max() > 0.005 and len(set(offset[:, 0].tolist())) == 5
+    expected_cloud = observation["point_cloud"].clone()
+    for window in range(5):
+        expected_cloud[window, :, :, :3] += offset[window]
+    torch.testing.assert_close(shifted["point_cloud"], expected_cloud)
+    torch.testing.assert_close(shifted["imagined_point_cloud"],
+                               observation["imagined_point_cloud"] + offset[:, None, None, :])
+    torch.testing.assert_close(shifted["agent_pos"][:, 1, :3], observation["agent_pos"][:, 1, :3] + offset)
+    torch.testing.assert_close(shifted["agent_pos"][..., 3], observation["agent_pos"][..., 3])
+    assert all(torch.equal(observation[key], original[key]) for key in original)  # the input is left as it was
+
+
+def test_shift_augmentation_trains_on_meta_world_and_is_refused_where_it_is_not_action_safe(reach_data, tmp_path):
+    config = dataclasses.replace(policy_config("mp1", reach_data, tmp_path, steps=2), augment_shift=0.02,
+                                 eval_episodes=0)
+    train_policy(config)
+    assert load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["train_config"]["augment_shift"] == 0.02
+    with pytest.raises(ValueError, match="simulator state"):
+        dataclasses.replace(policy_config("mp1-state", reach_data, tmp_path), augment_shift=0.02)
+    with pytest.raises(ValueError, match="augment_shift"):
+        dataclasses.replace(config, augment_shift=-0.01)
+    from d2a_agents.policy.train import check_shift_augmentation
+
+    with pytest.raises(ValueError, match="adroit-door"):
+        check_shift_augmentation(config, ["reach", "adroit-door"])
+    check_shift_augmentation(dataclasses.replace(config, augment_shift=0.0), ["adroit-door"])  # off: anything goes

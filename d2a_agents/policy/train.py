@@ -41,6 +41,7 @@ from d2a_agents.policy.checkpoints import CHECKPOINT_KIND, CHECKPOINT_NAME, eval
 from d2a_agents.policy.perception import Reliance, reliance
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import Imaginer
+from d2a_envs.tasks import get_task
 
 # TrainPolicyConfig fields a resumed run may change (how long, how often, where it runs);
 # every other field must match the checkpoint's, or the resume would mix two runs.
@@ -95,6 +96,10 @@ class TrainPolicyConfig:
     # Keep only this many frames after an episode's first success (-1: keep all). Scripted
     # experts succeed at steps 59-71 of 200 on Hammer and then hold still: 2/3 of the frames.
     trim_after_success: int = POLICY_PRESETS["cpu"].trim_after_success
+    # Each training window's clouds and end-effector position moved by one random translation,
+    # uniform in [-augment_shift, augment_shift] metres per axis (0: off). Meta-World only: its
+    # actions are end-effector position deltas, so a scene moved as a whole calls for the same actions.
+    augment_shift: float = 0.0
     reliance_windows: int = 512  # windows of the perception check
     eval_every: int = 0  # 0: only at the end
     eval_episodes: int = 20  # 0: no evaluation at all
@@ -129,6 +134,10 @@ class TrainPolicyConfig:
             raise ValueError(f"eval_workers must be at least 1, not {self.eval_workers}")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate must be positive, not {self.learning_rate}")
+        if not 0 <= self.augment_shift < math.inf:
+            raise ValueError(f"augment_shift must be a distance >= 0 in metres, not {self.augment_shift}")
+        if self.augment_shift > 0 and self.policy.encoder.state_key != "agent_pos":
+            raise ValueError(f"augment_shift moves clouds and agent_pos; {self.policy.algo} reads the simulator state")
 
 
 @dataclass
@@ -213,14 +222,42 @@ def fit_policy_normalizers(frames: TensorDict, config: PolicyConfig) -> dict[str
     return {**normalizers, **{key: Normalizer.fit(value) for key, value in data.items()}}
 
 
+def shift_windows(
+    observation: dict[str, torch.Tensor], max_shift: float, generator: torch.Generator | None = None
+) -> dict[str, torch.Tensor]:
+    """The windows moved in space: one translation per window, uniform in [-max_shift,
+    max_shift] metres per axis, added to every point of its clouds (current and imagined,
+    (B, T, N, >=3)) and to the end-effector position, the first three entries of ``agent_pos``
+    (B, T, >=3); everything else (the gripper opening) is left as it is."""
+    position = observation["agent_pos"]
+    offset = (torch.rand(position.shape[0], 3, generator=generator, device=position.device) * 2 - 1) * max_shift
+    shifted = dict(observation)
+    for key in ("point_cloud", IMAGINED_KEY, "agent_pos"):
+        if key in shifted:
+            moved = shifted[key].clone()
+            moved[..., :3] += offset.view(-1, *[1] * (moved.dim() - 2), 3)
+            shifted[key] = moved
+    return shifted
+
+
+def check_shift_augmentation(config: TrainPolicyConfig, tasks: list[str]) -> None:
+    """Refuse a translation augmentation on tasks whose actions are not position deltas."""
+    others = [task for task in tasks if get_task(task).suite != "metaworld"]
+    if config.augment_shift > 0 and others:
+        raise ValueError(f"augment_shift needs position-delta actions (Meta-World); {others} act in joint space")
+
+
 def training_step(
     policy: Policy, optimizer: torch.optim.Optimizer, windows: DemoWindows, batch_size: int,
-    generator: torch.Generator,
+    generator: torch.Generator, augment_shift: float = 0.0,
 ) -> dict[str, float]:
-    """One optimizer step on ``batch_size`` windows drawn from ``windows``; returns the loss figures."""
+    """One optimizer step on ``batch_size`` windows drawn from ``windows`` (moved by
+    :func:`shift_windows` when ``augment_shift`` > 0); returns the loss figures."""
     batch = windows.sample(batch_size, generator)
-    keys = policy.config.observation_keys
-    loss, info = policy.compute_loss({key: batch["obs", key] for key in keys}, batch["action"], generator)
+    observation = {key: batch["obs", key] for key in policy.config.observation_keys}
+    if augment_shift > 0:
+        observation = shift_windows(observation, augment_shift, generator)
+    loss, info = policy.compute_loss(observation, batch["action"], generator)
     optimizer.zero_grad()
     loss.backward()
     optimizer.step()
@@ -255,6 +292,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
                 if uses_imagination(config.policy.algo) else None)
     if imaginer is not None and not set(dataset.metadata.tasks) <= set(imaginer_tasks(config.world_model)):
         raise CheckpointError(f"world model {config.world_model} was not trained on every task of {config.data}")
+    check_shift_augmentation(config, sorted(dataset.metadata.tasks))
     frames = training_frames(dataset, config.policy, imaginer, config.progress)
     if config.trim_after_success >= 0:
         frames = frames[frames_up_to_success(frames, config.trim_after_success)]
@@ -339,7 +377,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
                disable=not config.progress)
     started = time.perf_counter()
     for step in bar:
-        info = training_step(policy, optimizer, windows, config.batch_size, generator)
+        info = training_step(policy, optimizer, windows, config.batch_size, generator, config.augment_shift)
         if not math.isfinite(info["mse"]):
             raise FloatingPointError(f"the training loss became {info['mse']} at step {step + 1}; "
                                      f"{path} keeps the last finite checkpoint")
