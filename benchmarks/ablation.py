@@ -48,7 +48,8 @@ def _previous_preset(config: TrainPolicyConfig) -> TrainPolicyConfig:
     preset = PREVIOUS_CPU_PRESET
     policy = dataclasses.replace(preset.policy, algo=config.policy.algo, normalize_clouds=False)
     return dataclasses.replace(config, policy=policy, steps=preset.steps, batch_size=preset.batch_size,
-                               learning_rate=preset.learning_rate, trim_after_success=preset.trim_after_success)
+                               learning_rate=preset.learning_rate, trim_after_success=preset.trim_after_success,
+                               augment_shift=preset.augment_shift)
 
 
 # name -> the one change to the cpu preset ("previous-preset": every change at once, undone)
@@ -66,7 +67,7 @@ CHANGES: dict[str, Callable[[TrainPolicyConfig], TrainPolicyConfig]] = {
     "steps-8000": _training(steps=8000),
     "trim-after-success-10": _training(trim_after_success=10),
     "keep-after-success": _training(trim_after_success=-1),  # every frame after success, as before
-    "shift-2cm": _training(augment_shift=0.02),  # clouds and end effector moved together, up to 2 cm per axis
+    "no-shift": _training(augment_shift=0.0),  # training windows not moved in space (before the 2 cm shift)
     "diffusion-epsilon": _policy(diffusion_prediction="epsilon"),  # for --algo dp3
     "cfg-amplify": _policy(cfg_guidance="amplify"),  # for the CFG variants
     "previous-preset": _previous_preset,

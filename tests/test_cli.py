@@ -61,7 +61,9 @@ def test_train_policy_defaults_to_the_cpu_preset_and_flags_override_it(captured)
     assert captured["config"].trim_after_success == -1
     main(["train-policy", "--data", "d", "--out", "o", "--preset", "paper"])
     assert captured["config"].trim_after_success == -1  # the paper trains on every frame
-    assert captured["config"].augment_shift == 0.0
+    assert captured["config"].augment_shift == 0.0  # the paper's preset moves nothing
+    main(["train-policy", "--data", "d", "--out", "o"])
+    assert captured["config"].augment_shift is None  # the cpu preset's: 2 cm on Meta-World
     main(["train-policy", "--data", "d", "--out", "o", "--augment-shift", "0.02"])
     assert captured["config"].augment_shift == 0.02
     for bad in ("-0.01", "inf", "nan"):

@@ -22,7 +22,7 @@ from d2a_agents.policy.checkpoints import (
     load_torchrl_policy,
 )
 from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
-from d2a_agents.policy.train import TrainPolicyConfig, train_policy
+from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
 from d2a_agents.world_model.triplane import WorldModelConfig
 
@@ -229,16 +229,23 @@ def test_shifted_windows_move_clouds_and_end_effector_together():
 
 
 def test_shift_augmentation_trains_on_meta_world_and_is_refused_where_it_is_not_action_safe(reach_data, tmp_path):
-    config = dataclasses.replace(policy_config("mp1", reach_data, tmp_path, steps=2), augment_shift=0.02,
-                                 eval_episodes=0)
+    from d2a_agents.policy.train import DEFAULT_AUGMENT_SHIFT, augment_shift_for
+
+    config = dataclasses.replace(policy_config("mp1", reach_data, tmp_path, steps=2), eval_episodes=0)
+    assert config.augment_shift is None  # the cpu preset's: 2 cm where action-safe
     train_policy(config)
-    assert load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["train_config"]["augment_shift"] == 0.02
+    assert load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["augment_shift"] == DEFAULT_AUGMENT_SHIFT == 0.02
+    state = policy_config("mp1-state", reach_data, tmp_path)
+    assert augment_shift_for(config, ["reach"]) == 0.02
+    assert augment_shift_for(config, ["adroit-door"]) == augment_shift_for(state, ["reach"]) == 0.0
+    explicit = dataclasses.replace(config, augment_shift=0.05)
+    assert augment_shift_for(explicit, ["reach"]) == 0.05
+    with pytest.raises(ValueError, match="adroit-door"):
+        augment_shift_for(explicit, ["reach", "adroit-door"])
     with pytest.raises(ValueError, match="simulator state"):
-        dataclasses.replace(policy_config("mp1-state", reach_data, tmp_path), augment_shift=0.02)
+        augment_shift_for(dataclasses.replace(state, augment_shift=0.05), ["reach"])
+    assert augment_shift_for(dataclasses.replace(explicit, augment_shift=0.0), ["adroit-door"]) == 0.0
     with pytest.raises(ValueError, match="augment_shift"):
         dataclasses.replace(config, augment_shift=-0.01)
-    from d2a_agents.policy.train import check_shift_augmentation
-
-    with pytest.raises(ValueError, match="adroit-door"):
-        check_shift_augmentation(config, ["reach", "adroit-door"])
-    check_shift_augmentation(dataclasses.replace(config, augment_shift=0.0), ["adroit-door"])  # off: anything goes
+    paper = TrainPolicyConfig.from_preset(POLICY_PRESETS["paper"], data=reach_data, out=str(tmp_path))
+    assert augment_shift_for(paper, ["reach"]) == 0.0  # the paper's recipe moves nothing

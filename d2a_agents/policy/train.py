@@ -62,7 +62,11 @@ class PolicyPreset:
     batch_size: int
     learning_rate: float
     trim_after_success: int = -1  # frames kept after each demonstration's first success (-1: all)
+    augment_shift: float | None = 0.0  # translation of the training windows (m); None: see augment_shift_for
 
+
+# The translation the ``cpu`` preset applies where it is action-safe (docs/perception.md).
+DEFAULT_AUGMENT_SHIFT = 0.02
 
 POLICY_PRESETS: dict[str, PolicyPreset] = {
     # A 2-core CPU: 64 points, the narrow preset networks, 4000 steps of batch 256 (1.0 M
@@ -71,7 +75,9 @@ POLICY_PRESETS: dict[str, PolicyPreset] = {
     # ablations behind it are in docs/perception.md.
     # Training stops 10 frames after each demonstration's first success: the expert holds still
     # after it (1/3 to 2/3 of the frames), and those frames taught the policy to stop short.
-    "cpu": PolicyPreset(CPU_POLICY_PRESET, steps=4000, batch_size=256, learning_rate=1e-3, trim_after_success=10),
+    # On Meta-World each training window is moved in space by up to 2 cm per axis.
+    "cpu": PolicyPreset(CPU_POLICY_PRESET, steps=4000, batch_size=256, learning_rate=1e-3, trim_after_success=10,
+                        augment_shift=None),
     # Section IV of the paper: 1024 points (Meta-World), batch 128, 3000 epochs of 2000
     # demonstration steps (~47k steps), DP3's learning rate.
     "paper": PolicyPreset(PolicyConfig(num_points=1024), steps=47_000, batch_size=128, learning_rate=1e-4),
@@ -97,9 +103,9 @@ class TrainPolicyConfig:
     # experts succeed at steps 59-71 of 200 on Hammer and then hold still: 2/3 of the frames.
     trim_after_success: int = POLICY_PRESETS["cpu"].trim_after_success
     # Each training window's clouds and end-effector position moved by one random translation,
-    # uniform in [-augment_shift, augment_shift] metres per axis (0: off). Meta-World only: its
-    # actions are end-effector position deltas, so a scene moved as a whole calls for the same actions.
-    augment_shift: float = 0.0
+    # uniform in [-augment_shift, augment_shift] metres per axis (0: off; None: 2 cm where that
+    # is action-safe, else off; see augment_shift_for).
+    augment_shift: float | None = POLICY_PRESETS["cpu"].augment_shift
     reliance_windows: int = 512  # windows of the perception check
     eval_every: int = 0  # 0: only at the end
     eval_episodes: int = 20  # 0: no evaluation at all
@@ -119,7 +125,7 @@ class TrainPolicyConfig:
         """The preset's networks and budget (steps, batch, learning rate, trimming); ``fields`` set the rest."""
         return cls(**{"policy": preset.policy, "steps": preset.steps, "batch_size": preset.batch_size,
                       "learning_rate": preset.learning_rate, "trim_after_success": preset.trim_after_success,
-                      **fields})
+                      "augment_shift": preset.augment_shift, **fields})
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "checkpoint_every", "reliance_windows"):
@@ -134,10 +140,8 @@ class TrainPolicyConfig:
             raise ValueError(f"eval_workers must be at least 1, not {self.eval_workers}")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate must be positive, not {self.learning_rate}")
-        if not 0 <= self.augment_shift < math.inf:
+        if self.augment_shift is not None and not 0 <= self.augment_shift < math.inf:
             raise ValueError(f"augment_shift must be a distance >= 0 in metres, not {self.augment_shift}")
-        if self.augment_shift > 0 and self.policy.encoder.state_key != "agent_pos":
-            raise ValueError(f"augment_shift moves clouds and agent_pos; {self.policy.algo} reads the simulator state")
 
 
 @dataclass
@@ -240,11 +244,24 @@ def shift_windows(
     return shifted
 
 
-def check_shift_augmentation(config: TrainPolicyConfig, tasks: list[str]) -> None:
-    """Refuse a translation augmentation on tasks whose actions are not position deltas."""
+def augment_shift_for(config: TrainPolicyConfig, tasks: list[str]) -> float:
+    """The translation (m) a run applies to its training windows.
+
+    Moving a window's clouds and end effector together calls for the same actions only where
+    actions are end-effector position deltas (Meta-World) and the policy reads clouds and
+    ``agent_pos`` (the state reference reads object positions that would have to move too).
+    ``augment_shift=None`` gives ``DEFAULT_AUGMENT_SHIFT`` there and 0 elsewhere; an explicit
+    distance where it is not action-safe is refused.
+    """
     others = [task for task in tasks if get_task(task).suite != "metaworld"]
+    reads_state = config.policy.encoder.state_key != "agent_pos"
+    if config.augment_shift is None:
+        return 0.0 if others or reads_state else DEFAULT_AUGMENT_SHIFT
+    if config.augment_shift > 0 and reads_state:
+        raise ValueError(f"augment_shift moves clouds and agent_pos; {config.policy.algo} reads the simulator state")
     if config.augment_shift > 0 and others:
         raise ValueError(f"augment_shift needs position-delta actions (Meta-World); {others} act in joint space")
+    return config.augment_shift
 
 
 def training_step(
@@ -292,7 +309,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
                 if uses_imagination(config.policy.algo) else None)
     if imaginer is not None and not set(dataset.metadata.tasks) <= set(imaginer_tasks(config.world_model)):
         raise CheckpointError(f"world model {config.world_model} was not trained on every task of {config.data}")
-    check_shift_augmentation(config, sorted(dataset.metadata.tasks))
+    augment_shift = augment_shift_for(config, sorted(dataset.metadata.tasks))
     frames = training_frames(dataset, config.policy, imaginer, config.progress)
     if config.trim_after_success >= 0:
         frames = frames[frames_up_to_success(frames, config.trim_after_success)]
@@ -323,7 +340,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
         "policy_config": config.policy.to_dict(), "action_dim": policy.action_dim, "state_dim": policy.state_dim,
         "world_model": world_model_path,
         "world_model_sha256": world_model_hash, "tasks": tasks, "env_kwargs": dataset.metadata.tasks,
-        "data": str(config.data), "held_out_episodes": held_ids,
+        "data": str(config.data), "held_out_episodes": held_ids, "augment_shift": augment_shift,
         "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "policy"},
         "run_config": {k: v for k, v in dataclasses.asdict(config).items()
                        if k not in RESUMABLE_CHANGES and k != "policy"},
@@ -377,7 +394,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
                disable=not config.progress)
     started = time.perf_counter()
     for step in bar:
-        info = training_step(policy, optimizer, windows, config.batch_size, generator, config.augment_shift)
+        info = training_step(policy, optimizer, windows, config.batch_size, generator, augment_shift)
         if not math.isfinite(info["mse"]):
             raise FloatingPointError(f"the training loss became {info['mse']} at step {step + 1}; "
                                      f"{path} keeps the last finite checkpoint")
@@ -403,9 +420,10 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     if config.progress and start < config.steps:
         seconds = time.perf_counter() - started - evaluation_seconds
         samples = (config.steps - start) * config.batch_size
+        moved = f", windows moved by up to {100 * augment_shift:g} cm" if augment_shift else ""
         print(f"trained {config.steps - start} steps in {seconds:.0f} s ({samples / seconds:.0f} samples/s, "
-              f"{torch.get_num_threads()} thread(s), {device}; evaluations took {evaluation_seconds:.0f} s more) "
-              f"-> {path}")
+              f"{torch.get_num_threads()} thread(s), {device}{moved}; evaluations took {evaluation_seconds:.0f} s "
+              f"more) -> {path}")
     if config.progress and reliances:
         print("perception check, " + Reliance(**{k: v for k, v in reliances[-1].items()
                                                  if k not in ("step", "where")}).summary(reliances[-1]["where"]))
