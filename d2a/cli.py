@@ -35,15 +35,20 @@ def _int_at_least(minimum: int) -> Callable[[str], int]:
     return integer
 
 
+def _finite_at_least(minimum: float) -> Callable[[str], float]:
+    """An argparse type: a finite number >= ``minimum`` (nan and inf refused)."""
+
+    def number(text: str) -> float:
+        value = float(text)
+        if not minimum <= value < float("inf"):
+            raise argparse.ArgumentTypeError(f"must be a finite number >= {minimum:g}, got {text}")
+        return value
+
+    return number
+
+
 POSITIVE, NON_NEGATIVE = _int_at_least(1), _int_at_least(0)
-
-
-def NON_NEGATIVE_FLOAT(text: str) -> float:  # noqa: N802 (an argparse type, named like the two above)
-    """An argparse type: a finite number >= 0."""
-    value = float(text)
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
-    return value
+NON_NEGATIVE_FLOAT = _finite_at_least(0.0)
 
 
 def _add_env_options(parser: argparse.ArgumentParser, several_tasks: bool = False) -> None:
