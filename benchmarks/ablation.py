@@ -47,9 +47,7 @@ def _previous_preset(config: TrainPolicyConfig) -> TrainPolicyConfig:
 
     preset = PREVIOUS_CPU_PRESET
     policy = dataclasses.replace(preset.policy, algo=config.policy.algo, normalize_clouds=False)
-    return dataclasses.replace(config, policy=policy, steps=preset.steps, batch_size=preset.batch_size,
-                               learning_rate=preset.learning_rate, trim_after_success=preset.trim_after_success,
-                               augment_shift=preset.augment_shift)
+    return dataclasses.replace(config, **{**preset.training_fields(), "policy": policy})
 
 
 # name -> the one change to the cpu preset ("previous-preset": every change at once, undone)

@@ -64,6 +64,10 @@ class PolicyPreset:
     trim_after_success: int = -1  # frames kept after each demonstration's first success (-1: all)
     augment_shift: float | None = 0.0  # translation of the training windows (m); None: see augment_shift_for
 
+    def training_fields(self) -> dict[str, Any]:
+        """Every field, by name: each is a ``TrainPolicyConfig`` field of the same name."""
+        return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
+
 
 # The translation the ``cpu`` preset applies where it is action-safe (docs/perception.md).
 DEFAULT_AUGMENT_SHIFT = 0.02
@@ -122,10 +126,9 @@ class TrainPolicyConfig:
 
     @classmethod
     def from_preset(cls, preset: PolicyPreset, **fields: Any) -> TrainPolicyConfig:
-        """The preset's networks and budget (steps, batch, learning rate, trimming); ``fields`` set the rest."""
-        return cls(**{"policy": preset.policy, "steps": preset.steps, "batch_size": preset.batch_size,
-                      "learning_rate": preset.learning_rate, "trim_after_success": preset.trim_after_success,
-                      "augment_shift": preset.augment_shift, **fields})
+        """The preset's networks and budget (steps, batch, learning rate, trimming, window shift);
+        ``fields`` set the rest."""
+        return cls(**{**preset.training_fields(), **fields})
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "checkpoint_every", "reliance_windows"):
