@@ -401,8 +401,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "default: the preset's)")
     train_policy.add_argument("--augment-shift", type=NON_NEGATIVE_FLOAT, default=None, metavar="METRES",
                               help="move each training window's clouds and end effector by a random translation "
-                                   "of up to this per axis (Meta-World only; default: the preset's, cpu 0.02 on "
-                                   "Meta-World and off elsewhere, paper off; 0: off)")
+                                   "in the table plane of up to this along x and y (Meta-World only; default: the "
+                                   "preset's, cpu 0.02 on Meta-World and off elsewhere, paper off; 0: off)")
     train_policy.add_argument("--logger", default=None, choices=["csv", "tensorboard", "wandb", "mlflow", ""],
                               help="TorchRL logger of the scalars under OUT/logs ('': none; default csv)")
     train_policy.add_argument("--holdout-episodes", type=NON_NEGATIVE, default=None,

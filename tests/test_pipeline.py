@@ -206,8 +206,9 @@ def test_a_multi_task_run_evaluates_every_task(tmp_path):
 
 
 def test_shifted_windows_move_clouds_and_end_effector_together():
-    """Against a hand computation: per window one offset, the same for every point and step of
-    both clouds and for agent_pos's xyz; the gripper opening and the colour channels untouched."""
+    """Against a hand computation: per window one offset in the table plane, the same for every
+    point and step of both clouds and for agent_pos's xyz; heights, the gripper opening and the
+    colour channels untouched."""
     from d2a_agents.policy.train import shift_windows
 
     torch.manual_seed(0)
@@ -216,7 +217,8 @@ def test_shifted_windows_move_clouds_and_end_effector_together():
     original = {key: value.clone() for key, value in observation.items()}
     shifted = shift_windows(observation, 0.02, torch.Generator().manual_seed(3))
     offset = shifted["agent_pos"][:, 0, :3] - observation["agent_pos"][:, 0, :3]  # (5, 3)
-    assert (offset.abs() <= 0.02).all() and offset.abs().max() > 0.005 and len(set(offset[:, 0].tolist())) == 5
+    assert (offset[:, :2].abs() <= 0.02).all() and offset.abs().max() > 0.005
+    assert len(set(offset[:, 0].tolist())) == len(set(offset[:, 1].tolist())) == 5 and (offset[:, 2] == 0).all()
     expected_cloud = observation["point_cloud"].clone()
     for window in range(5):
         expected_cloud[window, :, :, :3] += offset[window]

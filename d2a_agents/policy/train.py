@@ -106,9 +106,9 @@ class TrainPolicyConfig:
     # Keep only this many frames after an episode's first success (-1: keep all). Scripted
     # experts succeed at steps 59-71 of 200 on Hammer and then hold still: 2/3 of the frames.
     trim_after_success: int = POLICY_PRESETS["cpu"].trim_after_success
-    # Each training window's clouds and end-effector position moved by one random translation,
-    # uniform in [-augment_shift, augment_shift] metres per axis (0: off; None: 2 cm where that
-    # is action-safe, else off; see augment_shift_for).
+    # Each training window's clouds and end-effector position moved by one random translation in
+    # the table plane, uniform in [-augment_shift, augment_shift] metres along x and y (0: off;
+    # None: 2 cm where that is action-safe, else off; see augment_shift_for).
     augment_shift: float | None = POLICY_PRESETS["cpu"].augment_shift
     reliance_windows: int = 512  # windows of the perception check
     eval_every: int = 0  # 0: only at the end
@@ -232,12 +232,15 @@ def fit_policy_normalizers(frames: TensorDict, config: PolicyConfig) -> dict[str
 def shift_windows(
     observation: dict[str, torch.Tensor], max_shift: float, generator: torch.Generator | None = None
 ) -> dict[str, torch.Tensor]:
-    """The windows moved in space: one translation per window, uniform in [-max_shift,
-    max_shift] metres per axis, added to every point of its clouds (current and imagined,
-    (B, T, N, >=3)) and to the end-effector position, the first three entries of ``agent_pos``
-    (B, T, >=3); everything else (the gripper opening) is left as it is."""
+    """The windows moved in the table plane: one translation per window, uniform in
+    [-max_shift, max_shift] metres along x and y, added to every point of its clouds (current
+    and imagined, (B, T, N, >=3)) and to the end-effector position, the first three entries of
+    ``agent_pos`` (B, T, >=3); heights and everything else (the gripper opening) are left as
+    they are. Meta-World moves its objects in the table plane only; a height shift would teach
+    tables at heights that never occur (docs/perception.md measures both)."""
     position = observation["agent_pos"]
     offset = (torch.rand(position.shape[0], 3, generator=generator, device=position.device) * 2 - 1) * max_shift
+    offset[:, 2] = 0  # drawn in 3D and flattened: the same random stream as the earlier 3D shift
     shifted = dict(observation)
     for key in ("point_cloud", IMAGINED_KEY, "agent_pos"):
         if key in shifted:
