@@ -79,7 +79,7 @@ POLICY_PRESETS: dict[str, PolicyPreset] = {
     # ablations behind it are in docs/perception.md.
     # Training stops 10 frames after each demonstration's first success: the expert holds still
     # after it (1/3 to 2/3 of the frames), and those frames taught the policy to stop short.
-    # On Meta-World each training window is moved in space by up to 2 cm per axis.
+    # On Meta-World each training window is moved in the table plane by up to 2 cm along x and y.
     "cpu": PolicyPreset(CPU_POLICY_PRESET, steps=4000, batch_size=256, learning_rate=1e-3, trim_after_success=10,
                         augment_shift=None),
     # Section IV of the paper: 1024 points (Meta-World), batch 128, 3000 epochs of 2000
@@ -236,11 +236,11 @@ def shift_windows(
     [-max_shift, max_shift] metres along x and y, added to every point of its clouds (current
     and imagined, (B, T, N, >=3)) and to the end-effector position, the first three entries of
     ``agent_pos`` (B, T, >=3); heights and everything else (the gripper opening) are left as
-    they are. Meta-World moves its objects in the table plane only; a height shift would teach
-    tables at heights that never occur (docs/perception.md measures both)."""
+    they are. Meta-World draws its objects' start positions across the table at fixed heights;
+    a height shift would show tables at heights that never occur (docs/perception.md measures both)."""
     position = observation["agent_pos"]
     offset = (torch.rand(position.shape[0], 3, generator=generator, device=position.device) * 2 - 1) * max_shift
-    offset[:, 2] = 0  # drawn in 3D and flattened: the same random stream as the earlier 3D shift
+    offset[:, 2] = 0  # drawn in 3D, then flattened: a seed moves x and y as the 3D shift measured beside it did
     shifted = dict(observation)
     for key in ("point_cloud", IMAGINED_KEY, "agent_pos"):
         if key in shifted:
