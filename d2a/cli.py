@@ -128,6 +128,25 @@ def cmd_data_info(args: argparse.Namespace) -> None:
     print(describe(DemoDataset.open(args.dir)))
 
 
+def cmd_report(args: argparse.Namespace) -> None:
+    from d2a_agents.checkpoint import CheckpointError
+    from d2a_agents.policy.report import format_report, read_run, report_rows
+
+    outcomes = []
+    for run in args.runs:  # a shell glob may bring in world models and empty folders: say so, go on
+        try:
+            found = read_run(run)
+        except CheckpointError as error:
+            print(f"skipped {run}: {error}", file=sys.stderr)
+            continue
+        if not found:
+            print(f"skipped {run}: not evaluated at its last step", file=sys.stderr)
+        outcomes += found
+    if not outcomes:
+        raise SystemExit("no evaluated run among the given ones")
+    print(format_report(report_rows(outcomes)))
+
+
 def cmd_train_wm(args: argparse.Namespace) -> None:
     from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
     from d2a_agents.world_model.triplane import CPU_PRESET, WorldModelConfig
@@ -424,6 +443,10 @@ def build_parser() -> argparse.ArgumentParser:
                             help="end episodes at their first success (same success rate, faster; returns stop there)")
     _add_ray_option(evaluation)
     evaluation.set_defaults(func=cmd_eval)
+
+    report = commands.add_parser("report", help="a table of finished policy runs: success over seeds, reliance")
+    report.add_argument("runs", nargs="+", metavar="RUN", help="run directories of d2a train-policy (or policy.pt)")
+    report.set_defaults(func=cmd_report)
 
     data = commands.add_parser("data", help="data sets").add_subparsers(dest="what", required=True)
     data_info = data.add_parser("info", help="episodes, lengths, success, point counts, size on disk")

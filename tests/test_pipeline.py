@@ -22,6 +22,7 @@ from d2a_agents.policy.checkpoints import (
     load_torchrl_policy,
 )
 from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
+from d2a_agents.policy.report import read_run
 from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
 from d2a_agents.world_model.triplane import WorldModelConfig
@@ -68,6 +69,9 @@ def test_collect_train_evaluate_without_imagination(algo, normalizers, reach_dat
     assert check["step"] == 3 and check["where"] == "training"
     assert check["windows"] == frames_kept_by_the_cpu_preset(reach_data) < 400  # of 2 x 200 frames
     assert (check["clouds_shuffled"] is None) == (algo == "mp1-state")
+    (outcome,) = read_run(tmp_path)  # what d2a report reads of a real run
+    assert (outcome.task, outcome.algo, outcome.episodes, outcome.wins) == ("reach", algo, 1, history[0].success_rate)
+    assert set(outcome.reliance) == ({"state"} if algo == "mp1-state" else {"clouds", "state"})
     assert [set(row) for row in payload["metrics"]] == [{"step", "mse"}] * 3  # no CFG gate in these variants
     logged = tmp_path / "logs" / algo / "scalars"  # the same figures, as TorchRL's CSV logger writes them
     assert (logged / "train" / "mse.csv").read_text().splitlines()[-1].startswith("3,")
