@@ -140,7 +140,7 @@ def cmd_report(args: argparse.Namespace) -> None:
             print(f"skipped {run}: {error}", file=sys.stderr)
             continue
         if not found:
-            print(f"skipped {run}: not evaluated at its last step", file=sys.stderr)
+            print(f"skipped {run}: still training, or not evaluated at its last step", file=sys.stderr)
         outcomes += found
     if not outcomes:
         raise SystemExit("no evaluated run among the given ones")

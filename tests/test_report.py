@@ -11,15 +11,16 @@ from d2a_agents.checkpoint import save_checkpoint
 from d2a_agents.policy.report import format_report, read_run, report_rows
 
 
-def fake_run(path, seed: int, wins: int, shift: float, algo: str = "mp1", final: bool = True) -> None:
-    """A policy checkpoint as train-policy writes it, minus the networks (the report reads no weights)."""
+def fake_run(path, seed: int, wins: int, shift: float, algo: str = "mp1", final: bool = True, steps: int = 10) -> None:
+    """A policy checkpoint as train-policy writes it, minus the networks (the report reads no weights);
+    ``steps``: the run's planned length (10: finished)."""
     history = [{"step": 5, "success_rate": 0.1, "episodes": 20, "task": "push"}]
     if final:
         history.append({"step": 10, "success_rate": wins / 100, "episodes": 100, "task": "push"})
     save_checkpoint(path / "policy.pt", "policy", {
         "policy_config": {"algo": algo, "num_points": 64, "encoder": {"widths": (32, 64)}},
         "run_config": {"data": "data/push", "batch_size": 256, "augment_shift": None, "seed": seed},
-        "augment_shift": shift, "step": 10, "history": history,
+        "train_config": {"steps": steps}, "augment_shift": shift, "step": 10, "history": history,
         "reliance": [{"step": 10, "intact": 0.01, "clouds_shuffled": 0.25, "state_shuffled": 0.5,
                       "imagined_shuffled": None}],
     })
@@ -44,6 +45,8 @@ def test_seeds_of_one_setting_pool_into_one_row(tmp_path):
 def test_unevaluated_runs_and_repeated_seeds(tmp_path, capsys):
     fake_run(tmp_path / "running", seed=0, wins=0, shift=0.02, final=False)  # evaluated at step 5, not at 10
     assert read_run(tmp_path / "running") == []
+    fake_run(tmp_path / "midway", seed=0, wins=50, shift=0.02, steps=20)  # evaluated at 10 of its 20 steps
+    assert read_run(tmp_path / "midway") == []
     fake_run(tmp_path / "a", seed=0, wins=90, shift=0.02)
     fake_run(tmp_path / "again", seed=0, wins=91, shift=0.02)
     with pytest.raises(ValueError, match="same settings and seed"):
@@ -52,6 +55,6 @@ def test_unevaluated_runs_and_repeated_seeds(tmp_path, capsys):
     main(["report", str(tmp_path / "a"), str(tmp_path / "running"), str(tmp_path / "wm.pt")])
     captured = capsys.readouterr()
     assert "| push | mp1 | - | 0 | 90 (of 100) |" in captured.out
-    assert "running: not evaluated" in captured.err and "not a policy" in captured.err
+    assert "running: still training, or not evaluated" in captured.err and "not a policy" in captured.err
     with pytest.raises(SystemExit, match="no evaluated run"):
         main(["report", str(tmp_path / "running")])

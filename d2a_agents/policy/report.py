@@ -59,10 +59,13 @@ def _ratios(check: dict[str, Any]) -> dict[str, float]:
 
 def read_run(path: str | Path) -> list[RunOutcome]:
     """The final evaluation of a run directory (or its checkpoint file), one entry per task;
-    empty when the run was never evaluated at its last step (``--eval-episodes 0``)."""
+    empty while the run is still training or when it was not evaluated at its last step
+    (``--eval-episodes 0``)."""
     path = Path(path)
     checkpoint = path / CHECKPOINT_NAME if path.is_dir() else path
     payload = load_checkpoint(checkpoint, "policy")
+    if payload["step"] < payload["train_config"]["steps"]:
+        return []  # an intermediate checkpoint, even where it was evaluated
     final = [point for point in payload.get("history", []) if point["step"] == payload["step"]]
     checks = payload.get("reliance") or []
     reliance = _ratios(checks[-1]) if checks else {}
