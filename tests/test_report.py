@@ -21,8 +21,8 @@ def fake_run(path, seed: int, wins: int, shift: float, algo: str = "mp1", final:
         "policy_config": {"algo": algo, "num_points": 64, "encoder": {"widths": (32, 64)}},
         "run_config": {"data": "data/push", "batch_size": 256, "augment_shift": None, "seed": seed},
         "train_config": {"steps": steps}, "augment_shift": shift, "step": 10, "history": history,
-        "reliance": [{"step": 10, "intact": 0.01, "clouds_shuffled": 0.25, "state_shuffled": 0.5,
-                      "imagined_shuffled": None}],
+        "reliance": [{"step": 10, "where": "training", "windows": 512, "intact": 0.01, "clouds_shuffled": 0.25,
+                      "state_shuffled": 0.5, "imagined_shuffled": None}],
     })
 
 

@@ -29,6 +29,11 @@ class Reliance:
     state_shuffled: float
     imagined_shuffled: float | None = None  # None: no second cloud encoder
 
+    @classmethod
+    def from_record(cls, record: dict[str, float | int | str | None]) -> Reliance:
+        """A check as the training checkpoint stores it (its fields plus ``step`` and ``where``)."""
+        return cls(**{key: value for key, value in record.items() if key not in ("step", "where")})
+
     @property
     def cloud_ratio(self) -> float | None:
         return None if self.clouds_shuffled is None else self.clouds_shuffled / max(self.intact, 1e-12)

@@ -22,6 +22,7 @@ from typing import Any
 from collectors.evaluation import wilson_interval
 from d2a_agents.checkpoint import load_checkpoint
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME
+from d2a_agents.policy.perception import Reliance
 
 # What tells seeds of one configuration apart, not the configuration.
 _NOT_SETTINGS = {"seed"}
@@ -51,10 +52,10 @@ def _flatten(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return flat
 
 
-def _ratios(check: dict[str, Any]) -> dict[str, float]:
-    names = {"clouds_shuffled": "clouds", "imagined_shuffled": "imagined", "state_shuffled": "state"}
-    return {name: check[key] / check["intact"] for key, name in names.items()
-            if check.get(key) is not None and check["intact"] > 0}
+def _ratios(record: dict[str, Any]) -> dict[str, float]:
+    check = Reliance.from_record(record)
+    ratios = {"clouds": check.cloud_ratio, "imagined": check.imagined_ratio, "state": check.state_ratio}
+    return {name: ratio for name, ratio in ratios.items() if ratio is not None}
 
 
 def read_run(path: str | Path) -> list[RunOutcome]:
@@ -94,8 +95,9 @@ class ReportRow:
         return (wins / episodes, *wilson_interval(wins, episodes))
 
 
-def _key(settings: dict[str, Any]) -> str:
-    return json.dumps(settings, sort_keys=True, default=str)
+def _key(value: Any) -> str:
+    """A settings value (or a whole settings dict) as comparable text."""
+    return json.dumps(value, sort_keys=True, default=str)
 
 
 def report_rows(outcomes: list[RunOutcome]) -> list[ReportRow]:
@@ -111,7 +113,7 @@ def report_rows(outcomes: list[RunOutcome]) -> list[ReportRow]:
                              f"({', '.join(str(run.path) for run in runs)})")
         siblings = [group[0].settings for (t, a, _), group in groups.items() if (t, a) == (task, algo)]
         differing = sorted(name for name in set().union(*siblings)
-                           if len({json.dumps(s.get(name), default=str) for s in siblings}) > 1)
+                           if len({_key(s.get(name)) for s in siblings}) > 1)
         differs = ", ".join(f"{name}={runs[0].settings.get(name)}" for name in differing) or "-"
         rows.append(ReportRow(task, algo, differs, tuple(sorted(runs, key=lambda run: run.seed))))
     return rows

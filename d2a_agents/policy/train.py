@@ -431,6 +431,5 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
               f"{torch.get_num_threads()} thread(s), {device}{moved}; evaluations took {evaluation_seconds:.0f} s "
               f"more) -> {path}")
     if config.progress and reliances:
-        print("perception check, " + Reliance(**{k: v for k, v in reliances[-1].items()
-                                                 if k not in ("step", "where")}).summary(reliances[-1]["where"]))
+        print("perception check, " + Reliance.from_record(reliances[-1]).summary(reliances[-1]["where"]))
     return ema.cpu().eval(), history
