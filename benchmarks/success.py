@@ -43,6 +43,7 @@ from collectors.storage import DemoDataset
 from d2a_agents.policy.agent import uses_imagination
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, evaluate_checkpoint
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
+from d2a_agents.success_plot import SuccessBar, plot_success_bars
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
 from d2a_agents.world_model.triplane import WorldModelConfig
 
@@ -304,31 +305,9 @@ def format_table(cells: list[Cell], config: SuccessBenchConfig) -> str:
 def plot_success(cells: list[Cell], path: str | Path) -> Path:
     """Grouped bars per task, one per variant: honest success with its 95 % interval, the
     paper protocol as a marker."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    summaries = summarize(cells)
-    tasks = list(dict.fromkeys(task for task, _ in summaries))
-    algos = list(dict.fromkeys(algo for _, algo in summaries))
-    width = 0.8 / len(algos)
-    fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(tasks), 3.8))
-    for k, algo in enumerate(algos):
-        xs = [i + (k - (len(algos) - 1) / 2) * width for i in range(len(tasks))]
-        rows = [summaries[task, algo] for task in tasks]
-        honest = [100 * r.honest for r in rows]
-        errors = [[100 * (r.honest - r.low) for r in rows], [100 * (r.high - r.honest) for r in rows]]
-        bars = ax.bar(xs, honest, width, yerr=errors, capsize=2, label=algo)
-        ax.plot(xs, [100 * r.paper for r in rows], "v", color=bars.patches[0].get_facecolor(), markeredgecolor="k")
-    ax.set_xticks(range(len(tasks)), tasks)
-    ax.set_ylim(0, 100)
-    ax.set_ylabel("success %")
-    ax.set_title("final checkpoint (bars, 95 % interval); paper protocol (triangles)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    bars: dict[str, dict[str, SuccessBar]] = {}
+    for (task, algo), row in summarize(cells).items():
+        seeds = tuple(c.final_wins / c.final_episodes for c in cells if (c.task, c.algo) == (task, algo))
+        bars.setdefault(algo, {})[task] = SuccessBar(row.honest, row.low, row.high, seeds, marker=row.paper)
+    return plot_success_bars(bars, path, "final checkpoint (bars, 95 % interval; dots: seeds); "
+                                         "paper protocol (triangles)")

@@ -130,7 +130,7 @@ def cmd_data_info(args: argparse.Namespace) -> None:
 
 def cmd_report(args: argparse.Namespace) -> None:
     from d2a_agents.checkpoint import CheckpointError
-    from d2a_agents.policy.report import format_report, read_run, report_rows
+    from d2a_agents.policy.report import format_report, plot_report, read_run, report_rows
 
     outcomes = []
     for run in args.runs:  # a shell glob may bring in world models and empty folders: say so, go on
@@ -144,7 +144,10 @@ def cmd_report(args: argparse.Namespace) -> None:
         outcomes += found
     if not outcomes:
         raise SystemExit("no evaluated run among the given ones")
-    print(format_report(report_rows(outcomes)))
+    rows = report_rows(outcomes)
+    print(format_report(rows))
+    if args.plot:
+        print(f"wrote {plot_report(rows, args.plot)}")
 
 
 def cmd_train_wm(args: argparse.Namespace) -> None:
@@ -446,6 +449,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     report = commands.add_parser("report", help="a table of finished policy runs: success over seeds, reliance")
     report.add_argument("runs", nargs="+", metavar="RUN", help="run directories of d2a train-policy (or policy.pt)")
+    report.add_argument("--plot", metavar="PNG", help="also draw the rows as bars per task (seeds as dots)")
     report.set_defaults(func=cmd_report)
 
     data = commands.add_parser("data", help="data sets").add_subparsers(dest="what", required=True)

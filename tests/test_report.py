@@ -4,11 +4,13 @@ independently (scipy), reliance ratios, and the settings that tell rows apart.""
 from __future__ import annotations
 
 import pytest
+from matplotlib.image import imread
 from scipy.stats import binomtest
 
 from d2a.cli import main
 from d2a_agents.checkpoint import save_checkpoint
-from d2a_agents.policy.report import format_report, read_run, report_rows
+from d2a_agents.policy.report import format_report, read_run, report_bars, report_rows
+from d2a_agents.success_plot import SuccessBar, plot_success_bars
 
 
 def fake_run(path, seed: int, wins: int, shift: float, algo: str = "mp1", final: bool = True, steps: int = 10) -> None:
@@ -58,3 +60,27 @@ def test_unevaluated_runs_and_repeated_seeds(tmp_path, capsys):
     assert "running: still training, or not evaluated" in captured.err and "not a policy" in captured.err
     with pytest.raises(SystemExit, match="no evaluated run"):
         main(["report", str(tmp_path / "running")])
+
+
+def test_rows_become_bars_per_task_with_seeds(tmp_path):
+    fake_run(tmp_path / "a0", seed=0, wins=90, shift=0.02)
+    fake_run(tmp_path / "a1", seed=1, wins=80, shift=0.02)
+    fake_run(tmp_path / "b0", seed=0, wins=70, shift=0.0)
+    fake_run(tmp_path / "d0", seed=0, wins=60, shift=0.02, algo="dp3")
+    rows = report_rows([outcome for run in ("a0", "a1", "b0", "d0") for outcome in read_run(tmp_path / run)])
+    bars = report_bars(rows)
+    assert set(bars) == {"mp1 (augment_shift=0.02)", "mp1 (augment_shift=0.0)", "dp3"}
+    pooled = bars["mp1 (augment_shift=0.02)"]["push"]
+    interval = binomtest(170, 200).proportion_ci(method="wilson")
+    assert (pooled.rate, pooled.low, pooled.high) == pytest.approx((0.85, interval.low, interval.high))
+    assert pooled.seeds == pytest.approx((0.9, 0.8)) and pooled.marker is None
+    main(["report", *(str(tmp_path / run) for run in ("a0", "a1", "d0")), "--plot", str(tmp_path / "bars.png")])
+    assert imread(tmp_path / "bars.png").ndim == 3  # a real image, decodable
+
+
+def test_a_variant_missing_a_task_leaves_a_gap_and_an_empty_plot_is_refused(tmp_path):
+    bars = {"mp1": {"push": SuccessBar(0.5, 0.4, 0.6), "hammer": SuccessBar(1.0, 0.96, 1.0, marker=0.98)},
+            "d2a": {"hammer": SuccessBar(0.9, 0.8, 0.95, seeds=(0.9,))}}
+    assert imread(plot_success_bars(bars, tmp_path / "gap.png", "t")).ndim == 3
+    with pytest.raises(ValueError, match="nothing to plot"):
+        plot_success_bars({}, tmp_path / "none.png", "t")

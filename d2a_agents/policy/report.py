@@ -10,6 +10,7 @@ algorithm are told apart by the settings in which they differ.
 Example::
 
     d2a report runs/hammer/*/s*        # every variant and seed under runs/hammer
+    d2a report runs/*/*/s* --plot success.png
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from collectors.evaluation import wilson_interval
 from d2a_agents.checkpoint import load_checkpoint
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME
 from d2a_agents.policy.perception import Reliance
+from d2a_agents.success_plot import SuccessBar, plot_success_bars
 
 # What tells seeds of one configuration apart, not the configuration.
 _NOT_SETTINGS = {"seed"}
@@ -137,3 +139,21 @@ def format_report(rows: list[ReportRow]) -> str:
                      f"{per_seed}{of} | {100 * rate:.1f} [{100 * low:.1f}-{100 * high:.1f}] | "
                      f"{ratios('clouds')} | {ratios('imagined')} | {ratios('state')} |")
     return "\n".join(lines)
+
+
+def report_bars(rows: list[ReportRow]) -> dict[str, dict[str, SuccessBar]]:
+    """The rows as bars: per algorithm and settings, per task, pooled success, its 95 %
+    interval and each seed's success."""
+    bars: dict[str, dict[str, SuccessBar]] = {}
+    for row in rows:
+        label = row.algo if row.differs == "-" else f"{row.algo} ({row.differs})"
+        rate, low, high = row.pooled
+        bars.setdefault(label, {})[row.task] = SuccessBar(rate, low, high, tuple(run.wins / run.episodes
+                                                                                 for run in row.runs))
+    return bars
+
+
+def plot_report(rows: list[ReportRow], path: str | Path) -> Path:
+    """Draw :func:`report_bars` of ``rows`` to ``path``."""
+    return plot_success_bars(report_bars(rows), path, "final checkpoint, pooled over seeds (95 % Wilson); "
+                                                      "dots: seeds")
