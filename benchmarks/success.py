@@ -257,6 +257,7 @@ class Summary:
     honest: float
     low: float
     high: float
+    seeds: tuple[float, ...] = ()  # each seed's final-checkpoint success, in the cells' order
 
 
 def summarize(cells: list[Cell]) -> dict[tuple[str, str], Summary]:
@@ -266,7 +267,8 @@ def summarize(cells: list[Cell]) -> dict[tuple[str, str], Summary]:
         runs = [cell for cell in cells if (cell.task, cell.algo) == key]
         wins, episodes = sum(c.final_wins for c in runs), sum(c.final_episodes for c in runs)
         honest, low, high = honest_protocol([True] * wins + [False] * (episodes - wins))
-        summaries[key] = Summary(statistics.fmean(cell.paper for cell in runs), honest, low, high)
+        summaries[key] = Summary(statistics.fmean(cell.paper for cell in runs), honest, low, high,
+                                 tuple(cell.honest for cell in runs))
     return summaries
 
 
@@ -307,7 +309,6 @@ def plot_success(cells: list[Cell], path: str | Path) -> Path:
     paper protocol as a marker."""
     bars: dict[str, dict[str, SuccessBar]] = {}
     for (task, algo), row in summarize(cells).items():
-        seeds = tuple(c.final_wins / c.final_episodes for c in cells if (c.task, c.algo) == (task, algo))
-        bars.setdefault(algo, {})[task] = SuccessBar(row.honest, row.low, row.high, seeds, marker=row.paper)
+        bars.setdefault(algo, {})[task] = SuccessBar(row.honest, row.low, row.high, row.seeds, marker=row.paper)
     return plot_success_bars(bars, path, "final checkpoint (bars, 95 % interval; dots: seeds); "
                                          "paper protocol (triangles)")

@@ -43,6 +43,11 @@ class RunOutcome:
     settings: dict[str, Any]  # policy and training settings, flattened, seed excluded
     reliance: dict[str, float]  # "clouds" / "imagined" / "state" -> shuffled over intact error
 
+    @property
+    def rate(self) -> float:
+        """Success of the final checkpoint on this task."""
+        return self.wins / self.episodes
+
 
 def _flatten(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     flat: dict[str, Any] = {}
@@ -132,7 +137,7 @@ def format_report(rows: list[ReportRow]) -> str:
             values = [run.reliance.get(name) for run in row.runs]
             return " / ".join("-" if value is None else f"{value:.1f}" for value in values)
 
-        per_seed = " / ".join(f"{100 * run.wins / run.episodes:.0f}" for run in row.runs)
+        per_seed = " / ".join(f"{100 * run.rate:.0f}" for run in row.runs)
         episodes = {run.episodes for run in row.runs}
         of = f" (of {episodes.pop()})" if len(episodes) == 1 else ""
         lines.append(f"| {row.task} | {row.algo} | {row.differs} | {' / '.join(str(run.seed) for run in row.runs)} | "
@@ -148,8 +153,7 @@ def report_bars(rows: list[ReportRow]) -> dict[str, dict[str, SuccessBar]]:
     for row in rows:
         label = row.algo if row.differs == "-" else f"{row.algo} ({row.differs})"
         rate, low, high = row.pooled
-        bars.setdefault(label, {})[row.task] = SuccessBar(rate, low, high, tuple(run.wins / run.episodes
-                                                                                 for run in row.runs))
+        bars.setdefault(label, {})[row.task] = SuccessBar(rate, low, high, tuple(run.rate for run in row.runs))
     return bars
 
 
