@@ -10,6 +10,7 @@ episodes are evaluated in one process and with ``workers`` processes, side by si
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import statistics
@@ -77,9 +78,8 @@ def _distances(task: str, seed: int, config: ExpertBenchConfig) -> str:
     """Roll out episode ``seed`` for ``late_max_steps`` in this process and describe how
     close the hand came to the object and the object to the goal."""
     env = make_torchrl_env(task, {**config.env_kwargs, "max_episode_steps": config.late_max_steps}, seed=seed)
-    with torch.no_grad():
+    with contextlib.closing(env), torch.no_grad():
         rollout = env.rollout(config.late_max_steps, make_expert(task))
-    env.close()
     assert int(rollout["episode_seed"][0]) == seed
     state = torch.cat([rollout[STATE_KEY][:1], rollout["next", STATE_KEY]])
     hand, obj, goal = state[:, _HAND], state[:, _OBJECT], state[:, _GOAL]

@@ -63,9 +63,13 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
     torch.set_num_threads(config.threads)
     spec = d2a_envs.get_task(config.task)
     env = gym.make(spec.env_id, num_points=config.num_points)
-    observation, _ = env.reset(seed=0)
+    try:
+        observation, _ = env.reset(seed=0)
+        action_dim, box = env.action_space.shape[0], env.get_wrapper_attr("config").crop_box
+    finally:
+        env.close()
     cloud = torch.as_tensor(observation["point_cloud"])
-    state_dim, action_dim = observation["agent_pos"].shape[0], env.action_space.shape[0]
+    state_dim = observation["agent_pos"].shape[0]
     normalizers = {"action": Normalizer(-torch.ones(action_dim), torch.ones(action_dim)),
                    "agent_pos": Normalizer(-torch.ones(state_dim), torch.ones(state_dim)),
                    "point_cloud": Normalizer(cloud.amin(0), cloud.amax(0))}
@@ -80,14 +84,12 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
         if policy_config.encoder.use_imagination:
             window["imagined_point_cloud"] = window["point_cloud"]
         results[name] = median_seconds(lambda p=policy, w=window: p.predict_action_chunk(w), config.repeats)
-    box = env.get_wrapper_attr("config").crop_box
     for model_config in config.world_models:
         model = TriplaneWorldModel(dataclasses.replace(model_config, action_dim=action_dim))
         imaginer = Imaginer(model, VoxelGrid(box, model_config.resolution), config.num_points, grow=False)
         actions = torch.zeros(model_config.action_history, action_dim)
         name = "imagination " + "x".join(map(str, model_config.resolution)) + ", untrained, whole band"
         results[name] = median_seconds(lambda i=imaginer, a=actions: i(cloud, a), config.repeats)
-    env.close()
     if config.world_model is not None:
         dataset = DemoDataset.open_for_training(config.data)
         for points in (None, CPU_POLICY_PRESET.num_points):

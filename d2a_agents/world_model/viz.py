@@ -30,17 +30,19 @@ def plot_task_imagination(
     """Drive ``task`` with its scripted expert and plot current / imagined / true future clouds."""
     spec = get_task(task)
     env = gym.make(spec.env_id, world_model=str(world_model), **env_kwargs)
-    horizon = env.get_wrapper_attr("imaginer").config.horizon
-    act = _expert(task, env)
-    env.action_space.seed(seed)
-    observation, _ = env.reset(seed=seed)
-    clouds, imagined = [observation["point_cloud"]], [observation["imagined_point_cloud"]]
-    for _ in range(max(steps) + horizon):
-        observation, *_ = env.step(act(observation))
-        clouds.append(observation["point_cloud"])
-        imagined.append(observation["imagined_point_cloud"])
-    box = env.get_wrapper_attr("crop_box")
-    env.close()
+    try:  # an env left open tears its GL context down at interpreter exit, noisily
+        horizon = env.get_wrapper_attr("imaginer").config.horizon
+        act = _expert(task, env)
+        env.action_space.seed(seed)
+        observation, _ = env.reset(seed=seed)
+        clouds, imagined = [observation["point_cloud"]], [observation["imagined_point_cloud"]]
+        for _ in range(max(steps) + horizon):
+            observation, *_ = env.step(act(observation))
+            clouds.append(observation["point_cloud"])
+            imagined.append(observation["imagined_point_cloud"])
+        box = env.get_wrapper_attr("crop_box")
+    finally:
+        env.close()
     frames = [
         {
             "step": t, "current": clouds[t], "imagined": imagined[t], "future": clouds[t + horizon],
