@@ -10,14 +10,9 @@ import pytest
 import d2a_agents.world_model.viz as imagination_viz
 from d2a.cli import main
 from tests.test_imagination import ENV_KWARGS, write_world_model
+from tests.test_reward import brute_force_chamfer
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
-def brute_force_chamfer(a: np.ndarray, b: np.ndarray) -> float:
-    """Mean nearest-neighbour distance both ways, from the full pairwise matrix in float64."""
-    distances = np.linalg.norm(a[:, None, :3].astype(np.float64) - b[None, :, :3], axis=-1)
-    return float(distances.min(axis=1).mean() + distances.min(axis=0).mean())
 
 
 def test_viz_pointcloud_writes_a_png(tmp_path: Path) -> None:
