@@ -137,13 +137,26 @@ def _world_model(config: SuccessBenchConfig, task: str, data: Path, device: str 
     return path
 
 
+def evaluation_interval(steps: int, evaluations: int) -> int:
+    """The ``eval_every`` that gives exactly ``evaluations`` periodic evaluations in ``steps``
+    training steps (every ``eval_every`` steps, and the final step); ValueError where no
+    fixed interval does (e.g. 6 in 10 steps)."""
+    if not 1 <= evaluations <= steps:
+        raise ValueError(f"evaluations must be between 1 and the {steps} training steps, not {evaluations}")
+    interval = -(-steps // evaluations)  # ceil: the last multiple falls before the final step
+    if (steps - 1) // interval + 1 != evaluations:
+        raise ValueError(f"no fixed interval gives {evaluations} evaluations in {steps} steps; "
+                         "choose another count or --steps")
+    return interval
+
+
 def run_cell(
     config: SuccessBenchConfig, task: str, algo: str, seed: int, data: Path, world_model: Path | None,
     device: str | None = None, workers: int | None = None,
 ) -> Cell:
     """Train one policy (resuming if interrupted) with its periodic evaluations, then the final
     one; ``device`` and ``workers`` default to the config's (a Ray cell passes its own)."""
-    run = Path(config.workdir) / "runs" / f"{task}_{algo}_s{seed}"
+    run = Path(config.workdir) / "runs" / _cell_name(config, task, algo, seed)
     started = time.perf_counter()
     preset = config.policy
     workers = workers or config.workers
@@ -151,7 +164,7 @@ def run_cell(
     _, history = train_policy(TrainPolicyConfig.from_preset(
         preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=algo),
         world_model=str(world_model) if uses_imagination(algo) else None,
-        eval_every=max(1, preset.steps // config.evaluations), eval_episodes=config.eval_episodes,
+        eval_every=evaluation_interval(preset.steps, config.evaluations), eval_episodes=config.eval_episodes,
         eval_workers=workers, seed=seed, threads=config.threads, device=device or config.device, progress=progress,
     ))
     train_seconds = time.perf_counter() - started
@@ -164,8 +177,15 @@ def run_cell(
     return Cell(task, algo, seed, [point.success_rate for point in history], wins, episodes, train_seconds)
 
 
+def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> str:
+    """A cell's run and result name; the evaluation count is in it because the paper protocol
+    depends on it, so cells of 5 and of 15 evaluations share a workdir (its data and world
+    models) without one being read back as the other."""
+    return f"{task}_{algo}_s{seed}_e{config.evaluations}"
+
+
 def _cell_path(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> Path:
-    return Path(config.workdir) / "cells" / f"{task}_{algo}_s{seed}.json"
+    return Path(config.workdir) / "cells" / f"{_cell_name(config, task, algo, seed)}.json"
 
 
 def _describe(cell: Cell) -> str:
@@ -229,6 +249,7 @@ def _run_on_ray(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) ->
 def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
     """Every (task, algo, seed) cell, finished ones read back from disk (locally or on Ray);
     prints the table of the cells that finished."""
+    evaluation_interval(config.policy.steps, config.evaluations)  # a count it cannot give fails before any work
     grid = [(task, algo, seed) for task in config.tasks for algo in config.algos for seed in config.seeds]
     finished = {key: Cell(**json.loads(path.read_text())) for key in grid
                 if (path := _cell_path(config, *key)).exists()}

@@ -290,7 +290,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         base, policy=_replace_given(base.policy, steps=args.steps), tasks=tuple(args.task) if args.task else None,
         algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
         workdir=args.workdir, workers=args.workers, env_kwargs=env_kwargs or None, world_model=world_model,
-        world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray,
+        world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
     ))
 
 
@@ -520,6 +520,9 @@ def build_parser() -> argparse.ArgumentParser:
                                choices=ALGOS, help="default: d2a d2a-no-cfg mp1 dp3 mp1-state")
     bench_success.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="default: the preset's")
     bench_success.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
+    bench_success.add_argument("--evaluations", type=POSITIVE, default=None,
+                               help="periodic evaluations during training, the last at the final step; the paper "
+                                    "protocol averages the best 5 (default: the preset's, cpu 5, paper 15)")
     bench_success.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
     bench_success.add_argument("--image-size", type=POSITIVE, default=None, help="depth image size of the data")
     bench_success.add_argument("--num-points", type=POSITIVE, default=None, help="points of the env's clouds")

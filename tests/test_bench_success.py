@@ -45,7 +45,7 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
     assert (cell.task, cell.algo, cell.seed) == ("reach", "mp1", 0)
     assert len(cell.periodic) == evaluations and cell.final_episodes == 1
     assert cell.final_wins == round(cell.periodic[-1])  # the last periodic evaluation is the final checkpoint's
-    stored = json.loads((tmp_path / "cells" / "reach_mp1_s0.json").read_text())
+    stored = json.loads((tmp_path / "cells" / f"reach_mp1_s0_e{evaluations}.json").read_text())
     assert stored["periodic"] == cell.periodic
     assert (tmp_path / "success.png").stat().st_size > 0
 
@@ -54,3 +54,17 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
 
     monkeypatch.setattr(bench, "train_policy", no_training)
     assert bench.run(config) == [cell]
+
+
+@pytest.mark.parametrize(("steps", "evaluations"), [(4000, 5), (4000, 15), (3000, 15), (10, 4), (7, 7), (7, 1)])
+def test_evaluation_interval_gives_the_asked_count(steps, evaluations):
+    interval = bench.evaluation_interval(steps, evaluations)
+    # What train_policy evaluates: every multiple of the interval, and the final step.
+    evaluated = {step for step in range(1, steps + 1) if step % interval == 0 or step == steps}
+    assert len(evaluated) == evaluations
+
+
+@pytest.mark.parametrize(("steps", "evaluations"), [(10, 6), (10, 0), (10, 11)])
+def test_evaluation_interval_refuses_counts_it_cannot_give(steps, evaluations):
+    with pytest.raises(ValueError):
+        bench.evaluation_interval(steps, evaluations)
