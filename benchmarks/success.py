@@ -6,9 +6,10 @@ with the same budget, evaluate it periodically during training (the paper's prot
 mean of the top-5 evaluations) and evaluate its final checkpoint on new layouts (the honest
 protocol: one checkpoint chosen in advance, a Wilson interval). Prints a markdown table.
 
-Every finished (task, variant, seed) is stored as ``cells/<task>_<algo>_s<seed>.json``
-(atomic write); a rerun skips finished cells and resumes an interrupted training from its
-checkpoint, so a long run can be killed and restarted.
+Every finished (task, variant, seed) is stored as ``cells/<task>_<algo>_s<seed>_e<N>.json``
+(atomic write; N the number of periodic evaluations, so runs with other counts share the
+workdir's data and world models); a rerun skips finished cells and resumes an interrupted
+training from its checkpoint, so a long run can be killed and restarted.
 
 On Ray (``ray_address``), the demonstrations are collected as Ray jobs, each task's world
 model is a job, and every unfinished cell is a job that asks for ``threads`` CPUs (and a GPU
@@ -20,7 +21,7 @@ must be readable and writable on every node (one machine, or a shared filesystem
 Two presets: ``paper`` (the paper's protocol shape and the policy's full-size networks:
 3 seeds, 15 evaluations of 20 episodes, 100 final episodes; GPU work) and ``cpu`` (the same
 protocol shape with the ``cpu`` policy preset: 3 seeds, 5 evaluations of 20 episodes, 100
-final episodes). ``mp1-state``, the same action expert on privileged state, is the
+final episodes; ``evaluations=15`` gives the paper's count). ``mp1-state``, the same action expert on privileged state, is the
 perception reference: the gap between it and ``mp1`` is what perception costs.
 """
 
