@@ -21,8 +21,9 @@ must be readable and writable on every node (one machine, or a shared filesystem
 Two presets: ``paper`` (the paper's protocol shape and the policy's full-size networks:
 3 seeds, 15 evaluations of 20 episodes, 100 final episodes; GPU work) and ``cpu`` (the same
 protocol shape with the ``cpu`` policy preset: 3 seeds, 5 evaluations of 20 episodes, 100
-final episodes; ``evaluations=15`` gives the paper's count). ``mp1-state``, the same action expert on privileged state, is the
-perception reference: the gap between it and ``mp1`` is what perception costs.
+final episodes; ``evaluations=15`` gives the paper's count). ``mp1-state``, the same action
+expert on privileged state, is the perception reference: the gap between it and ``mp1`` is
+what perception costs.
 """
 
 from __future__ import annotations
