@@ -144,6 +144,35 @@ def test_training_resumes_from_its_checkpoint(reach_data, tmp_path):
     assert not torch.equal(first.net.input.weight, resumed.net.input.weight)
 
 
+def test_an_evaluation_cut_short_is_run_when_the_training_resumes(reach_data, tmp_path, monkeypatch):
+    """Killed during a periodic evaluation (the checkpoint already at that step), the resumed
+    run evaluates that step first: its history is the uninterrupted run's."""
+    import d2a_agents.policy.train as trainer
+
+    class Killed(Exception):
+        pass
+
+    real_evaluation, calls = trainer.evaluate_checkpoint, []
+
+    def killed_in_the_second_evaluation(*args, **kwargs):
+        calls.append(args)
+        if len(calls) == 2:
+            raise Killed
+        return real_evaluation(*args, **kwargs)
+
+    config = dataclasses.replace(policy_config("mp1", reach_data, tmp_path / "cut", steps=4), eval_every=1)
+    monkeypatch.setattr(trainer, "evaluate_checkpoint", killed_in_the_second_evaluation)
+    with pytest.raises(Killed):
+        train_policy(config)
+    interrupted = load_checkpoint(tmp_path / "cut" / CHECKPOINT_NAME, "policy")
+    assert interrupted["step"] == 2 and [point["step"] for point in interrupted["history"]] == [1]
+    monkeypatch.setattr(trainer, "evaluate_checkpoint", real_evaluation)
+    _, resumed = train_policy(config)
+    _, straight = train_policy(dataclasses.replace(config, out=str(tmp_path / "straight")))
+    assert [point.step for point in resumed] == [1, 2, 3, 4]
+    assert resumed == straight
+
+
 def test_imagination_variants_need_a_fitting_world_model(reach_data, tmp_path):
     with pytest.raises(ValueError, match="--world-model"):
         train_policy(policy_config("d2a", reach_data, tmp_path))

@@ -385,10 +385,14 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
 
     evaluation_seconds = 0.0
 
-    def evaluate_now(step: int) -> None:
+    def evaluation_due(step: int) -> bool:
+        return config.eval_episodes > 0 and ((config.eval_every and step % config.eval_every == 0)
+                                             or step == config.steps)
+
+    def evaluate_now(step: int, tasks: list[str]) -> None:
         nonlocal evaluation_seconds
         started_evaluation = time.perf_counter()
-        for task in static["tasks"]:
+        for task in tasks:
             result = evaluate_checkpoint(path, task, config.eval_episodes, seed=10_000, workers=config.eval_workers,
                                          progress=False, end_on_success=config.eval_end_on_success)
             history.append(EvaluationPoint(step, result.success_rate, result.episodes, task))
@@ -399,6 +403,13 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     bar = tqdm(range(start, config.steps), initial=start, total=config.steps, desc=f"{config.policy.algo} policy",
                disable=not config.progress)
     started = time.perf_counter()
+    # A run killed during an evaluation resumes from the checkpoint saved just before it: run
+    # the evaluations that step still lacks, or the history would silently miss them.
+    evaluated = {(point.step, point.task) for point in history}
+    unevaluated = [task for task in tasks if (start, task) not in evaluated]
+    if start and evaluation_due(start) and unevaluated:
+        evaluate_now(start, unevaluated)
+        checkpoint(start)
     for step in bar:
         info = training_step(policy, optimizer, windows, config.batch_size, generator, augment_shift)
         if not math.isfinite(info["mse"]):
@@ -413,14 +424,13 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
         done = step + 1
         metrics.append({"step": done, **{key: info[key] for key in LOGGED_METRICS if key in info}})
         log({f"train/{key}": value for key, value in metrics[-1].items() if key != "step"}, done)
-        evaluating = config.eval_episodes > 0 and (
-            (config.eval_every and done % config.eval_every == 0) or done == config.steps)
+        evaluating = evaluation_due(done)
         if evaluating or done == config.steps:
             check_perception(done)
         if evaluating or done % config.checkpoint_every == 0 or done == config.steps:
             checkpoint(done)  # evaluation workers load the policy from this file
         if evaluating:
-            evaluate_now(done)
+            evaluate_now(done, tasks)
             checkpoint(done)  # again, with the evaluation in the history
     bar.close()
     if config.progress and start < config.steps:
