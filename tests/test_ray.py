@@ -79,7 +79,8 @@ def test_a_two_cell_bench_on_ray_gives_the_local_cells(ray_instance, tmp_path):
                    for where in ("local", "ray")]
         assert weights[0].keys() == weights[1].keys()
         assert all(torch.equal(weights[0][key], weights[1][key]) for key in weights[0])
-    assert sorted(p.name for p in (tmp_path / "ray" / "cells").iterdir()) == ["reach_mp1_s0_e1.json", "reach_mp1_s1_e1.json"]
+    cells = sorted(p.name for p in (tmp_path / "ray" / "cells").iterdir())
+    assert cells == ["reach_mp1_s0_e1.json", "reach_mp1_s1_e1.json"]
     # The cells are finished: a rerun on Ray reads them back and starts no job.
     assert bench.run(dataclasses.replace(config, workdir=str(tmp_path / "ray"), ray_address="local")) == on_ray
 
