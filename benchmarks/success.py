@@ -69,6 +69,7 @@ class SuccessBenchConfig:
     policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget of every variant
     evaluations: int = 5  # periodic evaluations during training, the last one at the final step
     eval_episodes: int = 20  # per periodic evaluation (the paper: 20)
+    eval_layouts: str = "fixed"  # "fresh": new layouts at each periodic evaluation, as DP3 and MP1 (TrainPolicyConfig)
     final_episodes: int = 100  # extra evaluation of the final checkpoint; 0: reuse the last periodic one
     world_model: WorldModelConfig = WorldModelConfig(resolution=(32, 32, 8))
     world_model_steps: int = 300
@@ -87,7 +88,7 @@ PRESETS: dict[str, SuccessBenchConfig] = {
     # Section IV of the paper: 20 episodes every 200 of 3000 epochs (15 evaluations), 3 seeds.
     # It gives no world-model budget; 20k steps of batch 4 is our choice.
     "paper": SuccessBenchConfig(
-        policy=POLICY_PRESETS["paper"], evaluations=15,
+        policy=POLICY_PRESETS["paper"], evaluations=15, eval_layouts="fresh",
         world_model=WorldModelConfig(), world_model_steps=20_000,
     ),
 }
@@ -167,7 +168,8 @@ def run_cell(
         preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=algo),
         world_model=str(world_model) if uses_imagination(algo) else None,
         eval_every=evaluation_interval(preset.steps, config.evaluations), eval_episodes=config.eval_episodes,
-        eval_workers=workers, seed=seed, threads=config.threads, device=device or config.device, progress=progress,
+        eval_layouts=config.eval_layouts, eval_workers=workers, seed=seed, threads=config.threads,
+        device=device or config.device, progress=progress,
     ))
     train_seconds = time.perf_counter() - started
     if config.final_episodes:
@@ -180,10 +182,11 @@ def run_cell(
 
 
 def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> str:
-    """A cell's run and result name; the evaluation count is in it because the paper protocol
-    depends on it, so cells of 5 and of 15 evaluations share a workdir (its data and world
-    models) without one being read back as the other."""
-    return f"{task}_{algo}_s{seed}_e{config.evaluations}"
+    """A cell's run and result name; the evaluation count and fresh layouts are in it because
+    the paper protocol depends on them, so cells of 5 and of 15 evaluations, on fixed or fresh
+    layouts, share a workdir (its data and world models) without one being read back as another."""
+    fresh = "_fresh" if config.eval_layouts == "fresh" else ""
+    return f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}"
 
 
 def _cell_path(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> Path:

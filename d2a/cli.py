@@ -12,6 +12,7 @@ from collectors.ray_jobs import JobsLost  # the standard library only: `d2a --he
 
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
 ALGOS = ("d2a", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "mp1", "dp3", "mp1-state")
+EVAL_LAYOUTS = ("fixed", "fresh")  # d2a_agents.policy.train.EVAL_LAYOUTS, likewise
 
 
 def _parse_box(text: str | None) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
@@ -69,6 +70,13 @@ def _add_ray_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                         help="run the episodes (or cells) as Ray jobs: alone, on a Ray instance started on this "
                              "machine; 'auto': the running cluster; or a cluster address (needs the ray extra)")
+
+
+def _add_eval_layouts_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--eval-layouts", choices=EVAL_LAYOUTS, default=None,
+                        help="fixed: every periodic evaluation on the same layouts (default); fresh: new layouts "
+                             "at each, as DP3's and MP1's runners (the paper protocol's best 5 then also "
+                             "select over layout draws)")
 
 
 def _replace_given(instance: Any, **changes: object) -> Any:
@@ -192,9 +200,9 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
     config = _replace_given(
         TrainPolicyConfig.from_preset(preset, data=args.data, out=args.out, policy=policy,
                                       world_model=args.world_model),
-        eval_every=args.eval_every, eval_episodes=args.eval_episodes, eval_workers=args.workers, seed=args.seed,
-        holdout_episodes=args.holdout_episodes, device=args.device, threads=args.threads, logger=args.logger,
-        augment_shift=args.augment_shift,
+        eval_every=args.eval_every, eval_episodes=args.eval_episodes, eval_layouts=args.eval_layouts,
+        eval_workers=args.workers, seed=args.seed, holdout_episodes=args.holdout_episodes, device=args.device,
+        threads=args.threads, logger=args.logger, augment_shift=args.augment_shift,
     )
     _, history = train_policy(config)
     for point in history:
@@ -291,6 +299,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
         workdir=args.workdir, workers=args.workers, env_kwargs=env_kwargs or None, world_model=world_model,
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
+        eval_layouts=args.eval_layouts,
     ))
 
 
@@ -433,6 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--threads", type=NON_NEGATIVE, default=None, help="torch threads (0: torch's own)")
     train_policy.add_argument("--eval-every", type=NON_NEGATIVE, default=None, help="0: evaluate at the end only")
     train_policy.add_argument("--eval-episodes", type=NON_NEGATIVE, default=None)
+    _add_eval_layouts_option(train_policy)
     train_policy.add_argument("--workers", type=POSITIVE, default=None)
     train_policy.add_argument("--seed", type=NON_NEGATIVE, default=None)
     train_policy.set_defaults(func=cmd_train_policy)
@@ -523,6 +533,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_success.add_argument("--evaluations", type=POSITIVE, default=None,
                                help="periodic evaluations during training, the last at the final step; the paper "
                                     "protocol averages the best 5 (default: the preset's, cpu 5, paper 15)")
+    _add_eval_layouts_option(bench_success)
     bench_success.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
     bench_success.add_argument("--image-size", type=POSITIVE, default=None, help="depth image size of the data")
     bench_success.add_argument("--num-points", type=POSITIVE, default=None, help="points of the env's clouds")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -68,3 +69,10 @@ def test_evaluation_interval_gives_the_asked_count(steps, evaluations):
 def test_evaluation_interval_refuses_counts_it_cannot_give(steps, evaluations):
     with pytest.raises(ValueError):
         bench.evaluation_interval(steps, evaluations)
+
+
+def test_cells_on_fresh_layouts_are_named_apart_from_fixed_ones():
+    fixed = SuccessBenchConfig(evaluations=15)
+    fresh = dataclasses.replace(fixed, eval_layouts="fresh")
+    assert bench._cell_name(fixed, "push", "d2a", 1) == "push_d2a_s1_e15"  # the names of cells stored before
+    assert bench._cell_name(fresh, "push", "d2a", 1) == "push_d2a_s1_e15_fresh"

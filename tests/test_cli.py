@@ -111,6 +111,17 @@ def test_the_cli_offers_every_policy_variant():
     assert ALGOS == ALGORITHMS
 
 
+def test_the_cli_offers_every_kind_of_evaluation_layouts(captured):
+    from d2a.cli import EVAL_LAYOUTS
+    from d2a_agents.policy.train import EVAL_LAYOUTS as TRAINER_LAYOUTS
+
+    assert EVAL_LAYOUTS == TRAINER_LAYOUTS
+    main(["train-policy", "--data", "d", "--out", "o", "--eval-layouts", "fresh"])
+    assert captured["config"].eval_layouts == "fresh"
+    main(["bench", "success", "--eval-layouts", "fresh"])
+    assert captured["config"].eval_layouts == "fresh"
+
+
 def test_train_policy_paper_preset(captured):
     main(["train-policy", "--data", "d", "--out", "o", "--preset", "paper", "--policy-points", "512"])
     config = captured["config"]
@@ -134,6 +145,7 @@ def test_bench_success_options(captured):
     main(["bench", "success", "--preset", "paper"])
     paper = captured["config"]
     assert paper.seeds == (0, 1, 2) and paper.evaluations == 15 and paper.final_episodes == 100
+    assert paper.eval_layouts == "fresh" and dense.eval_layouts == "fixed"
 
 
 def test_demo_options_change_only_what_they_name(captured):

@@ -173,6 +173,33 @@ def test_an_evaluation_cut_short_is_run_when_the_training_resumes(reach_data, tm
     assert resumed == straight
 
 
+@pytest.mark.parametrize("layouts, seeds", [("fixed", [10_000] * 4), ("fresh", [10_000, 10_001, 10_001, 10_002])])
+def test_periodic_evaluations_play_fixed_or_fresh_layouts_across_a_resume(layouts, seeds, reach_data, tmp_path,
+                                                                           monkeypatch):
+    """"fixed": every evaluation starts at env seed 10000; "fresh": evaluation k plays the k-th
+    block of eval_episodes seeds, and a resumed run reuses the block of the evaluation it lost."""
+    import d2a_agents.policy.train as trainer
+
+    class Killed(Exception):
+        pass
+
+    real_evaluation, seen = trainer.evaluate_checkpoint, []
+
+    def recorded(*args, seed, **kwargs):
+        seen.append(seed)
+        if len(seen) == 2:
+            raise Killed
+        return real_evaluation(*args, seed=seed, **kwargs)
+
+    config = dataclasses.replace(policy_config("mp1", reach_data, tmp_path, steps=3), eval_every=1,
+                                 eval_layouts=layouts)
+    monkeypatch.setattr(trainer, "evaluate_checkpoint", recorded)
+    with pytest.raises(Killed):
+        train_policy(config)
+    _, history = train_policy(config)
+    assert seen == seeds and [point.step for point in history] == [1, 2, 3]
+
+
 def test_imagination_variants_need_a_fitting_world_model(reach_data, tmp_path):
     with pytest.raises(ValueError, match="--world-model"):
         train_policy(policy_config("d2a", reach_data, tmp_path))

@@ -51,6 +51,9 @@ RESUMABLE_CHANGES = ("out", "steps", "eval_every", "eval_episodes", "eval_worker
 # adaptive CFG, the batch means of the gate w and of rho (eq. 7) and the fraction of the batch
 # whose target the gate changes (w < 1), to see what the gate does.
 LOGGED_METRICS = ("mse", "cfg_weight", "cfg_rho", "cfg_active")
+# First env seed of the periodic evaluations (the final evaluations of the benches start at 100000).
+EVALUATION_SEED = 10_000
+EVAL_LAYOUTS = ("fixed", "fresh")
 
 
 @dataclass(frozen=True)
@@ -115,6 +118,11 @@ class TrainPolicyConfig:
     eval_episodes: int = 20  # 0: no evaluation at all
     eval_workers: int = 1
     eval_end_on_success: bool = True  # evaluations count successes only: end episodes there (same verdicts, faster)
+    # "fixed": every periodic evaluation plays the same layouts (env seeds 10000 on), so two
+    # evaluations differ only by their checkpoints; "fresh": each one plays the next
+    # eval_episodes layouts, as DP3's and MP1's runners do (their env draws a new layout at every
+    # reset), which makes the best-5 paper protocol also select over layout draws.
+    eval_layouts: str = "fixed"
     checkpoint_every: int = 200
     seed: int = 0
     device: str = "cpu"  # "cuda" trains on a GPU (evaluation and the checkpoint's policy stay on the CPU)
@@ -141,6 +149,8 @@ class TrainPolicyConfig:
                 raise ValueError(f"{name} must not be negative, not {getattr(self, name)}")
         if self.eval_workers < 1:
             raise ValueError(f"eval_workers must be at least 1, not {self.eval_workers}")
+        if self.eval_layouts not in EVAL_LAYOUTS:
+            raise ValueError(f"eval_layouts must be one of {EVAL_LAYOUTS}, not {self.eval_layouts!r}")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate must be positive, not {self.learning_rate}")
         if self.augment_shift is not None and not 0 <= self.augment_shift < math.inf:
@@ -155,6 +165,12 @@ class EvaluationPoint:
     success_rate: float
     episodes: int
     task: str = ""
+
+
+def evaluation_seed(layouts: str, index: int, episodes: int) -> int:
+    """First env seed of a task's ``index``-th periodic evaluation (0-based) of ``episodes``
+    episodes: the same for every index with ``"fixed"`` layouts, consecutive blocks with ``"fresh"``."""
+    return EVALUATION_SEED + (index * episodes if layouts == "fresh" else 0)
 
 
 def _cosine_with_warmup(warmup: int, total: int):
@@ -393,7 +409,9 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
         nonlocal evaluation_seconds
         started_evaluation = time.perf_counter()
         for task in tasks:
-            result = evaluate_checkpoint(path, task, config.eval_episodes, seed=10_000, workers=config.eval_workers,
+            seed = evaluation_seed(config.eval_layouts, sum(point.task == task for point in history),
+                                   config.eval_episodes)
+            result = evaluate_checkpoint(path, task, config.eval_episodes, seed=seed, workers=config.eval_workers,
                                          progress=False, end_on_success=config.eval_end_on_success)
             history.append(EvaluationPoint(step, result.success_rate, result.episodes, task))
             log({f"success/{task}": result.success_rate}, step)
