@@ -144,29 +144,36 @@ def test_training_resumes_from_its_checkpoint(reach_data, tmp_path):
     assert not torch.equal(first.net.input.weight, resumed.net.input.weight)
 
 
+class Killed(Exception):
+    """Stands for the process being killed."""
+
+
+def kill_in_the_second_evaluation(monkeypatch) -> list[int]:
+    """Make the trainer's second periodic evaluation raise ``Killed`` (every other one runs);
+    returns the first env seed of every evaluation it is asked for, in order."""
+    import d2a_agents.policy.train as trainer
+
+    real_evaluation, seeds = trainer.evaluate_checkpoint, []
+
+    def evaluation(*args, seed, **kwargs):
+        seeds.append(seed)
+        if len(seeds) == 2:
+            raise Killed
+        return real_evaluation(*args, seed=seed, **kwargs)
+
+    monkeypatch.setattr(trainer, "evaluate_checkpoint", evaluation)
+    return seeds
+
+
 def test_an_evaluation_cut_short_is_run_when_the_training_resumes(reach_data, tmp_path, monkeypatch):
     """Killed during a periodic evaluation (the checkpoint already at that step), the resumed
     run evaluates that step first: its history is the uninterrupted run's."""
-    import d2a_agents.policy.train as trainer
-
-    class Killed(Exception):
-        pass
-
-    real_evaluation, calls = trainer.evaluate_checkpoint, []
-
-    def killed_in_the_second_evaluation(*args, **kwargs):
-        calls.append(args)
-        if len(calls) == 2:
-            raise Killed
-        return real_evaluation(*args, **kwargs)
-
     config = dataclasses.replace(policy_config("mp1", reach_data, tmp_path / "cut", steps=4), eval_every=1)
-    monkeypatch.setattr(trainer, "evaluate_checkpoint", killed_in_the_second_evaluation)
+    kill_in_the_second_evaluation(monkeypatch)
     with pytest.raises(Killed):
         train_policy(config)
     interrupted = load_checkpoint(tmp_path / "cut" / CHECKPOINT_NAME, "policy")
     assert interrupted["step"] == 2 and [point["step"] for point in interrupted["history"]] == [1]
-    monkeypatch.setattr(trainer, "evaluate_checkpoint", real_evaluation)
     _, resumed = train_policy(config)
     _, straight = train_policy(dataclasses.replace(config, out=str(tmp_path / "straight")))
     assert [point.step for point in resumed] == [1, 2, 3, 4]
@@ -178,22 +185,9 @@ def test_periodic_evaluations_play_fixed_or_fresh_layouts_across_a_resume(layout
                                                                            monkeypatch):
     """"fixed": every evaluation starts at env seed 10000; "fresh": evaluation k plays the k-th
     block of eval_episodes seeds, and a resumed run reuses the block of the evaluation it lost."""
-    import d2a_agents.policy.train as trainer
-
-    class Killed(Exception):
-        pass
-
-    real_evaluation, seen = trainer.evaluate_checkpoint, []
-
-    def recorded(*args, seed, **kwargs):
-        seen.append(seed)
-        if len(seen) == 2:
-            raise Killed
-        return real_evaluation(*args, seed=seed, **kwargs)
-
     config = dataclasses.replace(policy_config("mp1", reach_data, tmp_path, steps=3), eval_every=1,
                                  eval_layouts=layouts)
-    monkeypatch.setattr(trainer, "evaluate_checkpoint", recorded)
+    seen = kill_in_the_second_evaluation(monkeypatch)
     with pytest.raises(Killed):
         train_policy(config)
     _, history = train_policy(config)
