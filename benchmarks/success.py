@@ -7,9 +7,11 @@ mean of the top-5 evaluations) and evaluate its final checkpoint on new layouts 
 protocol: one checkpoint chosen in advance, a Wilson interval). Prints a markdown table.
 
 Every finished (task, variant, seed) is stored as ``cells/<task>_<algo>_s<seed>_e<N>.json``
-(atomic write; N the number of periodic evaluations, so runs with other counts share the
-workdir's data and world models); a rerun skips finished cells and resumes an interrupted
-training from its checkpoint, so a long run can be killed and restarted.
+(atomic write; N the number of periodic evaluations, ``_fresh`` for new layouts at each, and a
+tag for any policy preset other than ``cpu``, so runs with other counts or budgets share the
+workdir's data and world models); a rerun skips finished cells, completes a collection cut
+short and resumes an interrupted training from its checkpoint, so a long run can be killed and
+restarted. Demonstrations collected with other env settings are refused, not reused.
 
 On Ray (``ray_address``), the demonstrations are collected as Ray jobs, each task's world
 model is a job, and every unfinished cell is a job that asks for ``threads`` CPUs (and a GPU
@@ -29,6 +31,7 @@ what perception costs.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import statistics
 import time
@@ -41,7 +44,6 @@ from collectors.atomic import atomic_write_text
 from collectors.collect import CollectConfig, collect
 from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
-from collectors.storage import DemoDataset
 from d2a_agents.policy.agent import uses_imagination
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, evaluate_checkpoint
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
@@ -123,10 +125,12 @@ class Cell:
 
 
 def _dataset(config: SuccessBenchConfig, task: str) -> Path:
+    """The task's demonstrations in the workdir: collected, or a collection cut short completed
+    (``collect`` refuses a data set collected with other env settings)."""
     data = Path(config.workdir) / "data" / task
-    if not DemoDataset.is_dataset(data):
-        collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.demos, seed=0,
-                              env_kwargs=config.env_kwargs, ray_address=config.ray_address))
+    collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.demos, seed=0, append=True,
+                          env_kwargs=config.env_kwargs, progress=config.ray_address is None,
+                          ray_address=config.ray_address))
     return data
 
 
@@ -183,10 +187,21 @@ def run_cell(
 
 def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> str:
     """A cell's run and result name; the evaluation count and fresh layouts are in it because
-    the paper protocol depends on them, so cells of 5 and of 15 evaluations, on fixed or fresh
-    layouts, share a workdir (its data and world models) without one being read back as another."""
+    the paper protocol depends on them, and the policy preset because the result does, so cells
+    of 5 and of 15 evaluations, on fixed or fresh layouts, of one budget or another, share a
+    workdir (its data and world models) without one being read back as another."""
     fresh = "_fresh" if config.eval_layouts == "fresh" else ""
-    return f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}"
+    return f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_preset_tag(config.policy)}"
+
+
+def _preset_tag(preset: PolicyPreset) -> str:
+    """'' for the ``cpu`` preset (the bench's default keeps the short name), ``_<name>`` for
+    another named preset, else the steps and a digest of every field (e.g. ``--steps 6000``)."""
+    for name, known in POLICY_PRESETS.items():
+        if preset == known:
+            return "" if name == "cpu" else f"_{name}"
+    digest = hashlib.sha1(repr(preset).encode()).hexdigest()[:8]
+    return f"_{preset.steps}steps-{digest}"
 
 
 def _cell_path(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> Path:

@@ -10,9 +10,10 @@ import pytest
 import benchmarks.success as bench
 from benchmarks.success import Cell, SuccessBenchConfig, format_table
 from collectors.collect import CollectConfig, collect
+from collectors.storage import DatasetError, DemoDataset
 from d2a_agents.policy.agent import PolicyConfig
 from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
-from d2a_agents.policy.train import PolicyPreset
+from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset
 
 
 def test_table_pools_seeds_and_quotes_the_paper():
@@ -35,18 +36,21 @@ def test_table_pools_seeds_and_quotes_the_paper():
 def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
     evaluations = 2
     env_kwargs = {"image_size": 48, "num_points": 128}
-    collect(CollectConfig(tasks=("reach",), out=str(tmp_path / "data" / "reach"), episodes=2, env_kwargs=env_kwargs,
-                          progress=False))
+    data = tmp_path / "data" / "reach"
+    # A collection cut short after its first demonstration: the bench completes it.
+    collect(CollectConfig(tasks=("reach",), out=str(data), episodes=1, env_kwargs=env_kwargs, progress=False))
     policy = PolicyConfig(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
                           network=VelocityNetConfig(hidden=32, layers=2))
     config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), demos=2, workdir=str(tmp_path),
                                 policy=PolicyPreset(policy, steps=4, batch_size=4, learning_rate=1e-3),
-                                evaluations=evaluations, eval_episodes=1, seeds=(0,), final_episodes=0)
+                                evaluations=evaluations, eval_episodes=1, seeds=(0,), final_episodes=0,
+                                env_kwargs=env_kwargs)
     (cell,) = bench.run(config)
+    assert len(DemoDataset.open(data).metadata.episodes) == 2
     assert (cell.task, cell.algo, cell.seed) == ("reach", "mp1", 0)
     assert len(cell.periodic) == evaluations and cell.final_episodes == 1
     assert cell.final_wins == round(cell.periodic[-1])  # the last periodic evaluation is the final checkpoint's
-    stored = json.loads((tmp_path / "cells" / f"reach_mp1_s0_e{evaluations}.json").read_text())
+    stored = json.loads(bench._cell_path(config, "reach", "mp1", 0).read_text())
     assert stored["periodic"] == cell.periodic
     assert (tmp_path / "success.png").stat().st_size > 0
 
@@ -55,6 +59,10 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
 
     monkeypatch.setattr(bench, "train_policy", no_training)
     assert bench.run(config) == [cell]
+    # A new cell on clouds of another size must not train on these demonstrations.
+    other_clouds = dataclasses.replace(config, seeds=(1,), env_kwargs={**env_kwargs, "num_points": 256})
+    with pytest.raises(DatasetError, match="collected with env kwargs"):
+        bench.run(other_clouds)
 
 
 @pytest.mark.parametrize(("steps", "evaluations"), [(4000, 5), (4000, 15), (3000, 15), (10, 4), (7, 7), (7, 1)])
@@ -76,3 +84,16 @@ def test_cells_on_fresh_layouts_are_named_apart_from_fixed_ones():
     fresh = dataclasses.replace(fixed, eval_layouts="fresh")
     assert bench._cell_name(fixed, "push", "d2a", 1) == "push_d2a_s1_e15"  # the names of cells stored before
     assert bench._cell_name(fresh, "push", "d2a", 1) == "push_d2a_s1_e15_fresh"
+
+
+def test_cells_of_another_policy_budget_are_named_apart():
+    cpu = SuccessBenchConfig(evaluations=15)
+    longer = dataclasses.replace(cpu, policy=dataclasses.replace(POLICY_PRESETS["cpu"], steps=6000))
+    paper = dataclasses.replace(cpu, policy=POLICY_PRESETS["paper"])
+    names = {bench._cell_name(config, "push", "d2a", 1) for config in (cpu, longer, paper)}
+    assert len(names) == 3
+    assert bench._cell_name(paper, "push", "d2a", 1) == "push_d2a_s1_e15_paper"
+    assert bench._cell_name(longer, "push", "d2a", 1).startswith("push_d2a_s1_e15_6000steps-")
+    # The tag depends on the preset's fields only, not on the object.
+    again = dataclasses.replace(cpu, policy=dataclasses.replace(POLICY_PRESETS["cpu"], steps=6000))
+    assert bench._cell_name(again, "push", "d2a", 1) == bench._cell_name(longer, "push", "d2a", 1)
