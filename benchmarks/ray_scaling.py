@@ -20,7 +20,6 @@ from benchmarks.success import Cell, SuccessBenchConfig
 from benchmarks.success import run as run_bench
 from collectors.collect import CollectConfig, collect
 from collectors.ray_jobs import LOCAL, import_ray, ray_cluster
-from collectors.storage import DemoDataset
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset
 
 
@@ -52,8 +51,9 @@ def run(config: RayScalingConfig = RayScalingConfig()) -> list[dict[str, object]
         raise ValueError("bench ray starts its own Ray instances: call it without a Ray connection")
     workdir = Path(config.workdir)
     data = workdir / "data" / config.task
-    if not DemoDataset.is_dataset(data):
-        collect(CollectConfig(tasks=(config.task,), out=str(data), episodes=config.demos, env_kwargs=config.env_kwargs))
+    # Collected once and shared by every run; a collection cut short is completed.
+    collect(CollectConfig(tasks=(config.task,), out=str(data), episodes=config.demos, env_kwargs=config.env_kwargs,
+                          append=True))
     rows: list[dict[str, object]] = []
     for cpus in config.cpus:
         run_dir = workdir / f"cpus{cpus}_{time.strftime('%Y%m%d-%H%M%S')}"

@@ -75,12 +75,12 @@ def test_a_two_cell_bench_on_ray_gives_the_local_cells(ray_instance, tmp_path):
 
     assert [outcome(cell) for cell in on_ray] == [outcome(cell) for cell in local]
     for seed in (0, 1):  # trained alike: the same weights, bit for bit
-        weights = [load_policy(tmp_path / where / "runs" / f"reach_mp1_s{seed}_e1")[0].state_dict()
-                   for where in ("local", "ray")]
+        run = bench._cell_name(config, "reach", "mp1", seed)
+        weights = [load_policy(tmp_path / where / "runs" / run)[0].state_dict() for where in ("local", "ray")]
         assert weights[0].keys() == weights[1].keys()
         assert all(torch.equal(weights[0][key], weights[1][key]) for key in weights[0])
     cells = sorted(p.name for p in (tmp_path / "ray" / "cells").iterdir())
-    assert cells == ["reach_mp1_s0_e1.json", "reach_mp1_s1_e1.json"]
+    assert cells == sorted(f"{bench._cell_name(config, 'reach', 'mp1', seed)}.json" for seed in (0, 1))
     # The cells are finished: a rerun on Ray reads them back and starts no job.
     assert bench.run(dataclasses.replace(config, workdir=str(tmp_path / "ray"), ray_address="local")) == on_ray
 
