@@ -221,13 +221,15 @@ def _store(config: SuccessBenchConfig, cell: Cell) -> None:
 def _run_locally(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -> dict[tuple[str, str, int], Cell]:
     """The unfinished cells one after the other in this process, each stored as it finishes."""
     done = {}
+    datasets: dict[str, Path] = {}
     world_models: dict[str, Path | None] = {}
     for task, algo, seed in todo:
-        data = _dataset(config, task)
-        if task not in world_models:
-            world_models[task] = _world_model(config, task, data) if any(map(uses_imagination, config.algos)) else None
+        if task not in datasets:  # once per task: the collection check opens the data set and an env
+            datasets[task] = _dataset(config, task)
+            world_models[task] = (_world_model(config, task, datasets[task])
+                                  if any(map(uses_imagination, config.algos)) else None)
         print(f"training {algo} on {task}, seed {seed}", flush=True)
-        done[task, algo, seed] = cell = run_cell(config, task, algo, seed, data, world_models[task])
+        done[task, algo, seed] = cell = run_cell(config, task, algo, seed, datasets[task], world_models[task])
         _store(config, cell)
         print(_describe(cell), flush=True)
     return done
