@@ -217,6 +217,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
         from collectors.evaluation import evaluate
         from collectors.experts import expert_env_kwargs, make_expert
 
+        if args.n_action_steps is not None:
+            raise ValueError("--n-action-steps applies to a policy checkpoint; the expert acts step by step")
         result = evaluate(functools.partial(make_expert, args.task), args.task, args.episodes, args.seed,
                           env_kwargs={**env_kwargs, **expert_env_kwargs(args.task)}, workers=args.workers,
                           end_on_success=args.end_on_success, ray_address=args.ray)
@@ -227,7 +229,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
             raise ValueError(f"{args.policy} is evaluated in the env it was trained with; "
                              f"the env options ({', '.join(env_kwargs)}) apply to --policy expert only")
         result = evaluate_checkpoint(args.policy, args.task, args.episodes, args.seed, workers=args.workers,
-                                     end_on_success=args.end_on_success, ray_address=args.ray)
+                                     end_on_success=args.end_on_success, ray_address=args.ray,
+                                     n_action_steps=args.n_action_steps)
     print(result.summary())
 
 
@@ -454,6 +457,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--workers", type=POSITIVE, default=2)
     evaluation.add_argument("--end-on-success", action="store_true",
                             help="end episodes at their first success (same success rate, faster; returns stop there)")
+    evaluation.add_argument("--n-action-steps", type=POSITIVE, default=None,
+                            help="actions executed per planned chunk before planning again (default: the "
+                                 "checkpoint's; 1 plans after every action)")
     _add_ray_option(evaluation)
     evaluation.set_defaults(func=cmd_eval)
 

@@ -155,6 +155,28 @@ def test_demo_options_change_only_what_they_name(captured):
     assert config.policy.policy == d2a.demo.DemoConfig().policy.policy
 
 
+def test_eval_passes_the_actions_per_plan_to_a_checkpoint_only(monkeypatch):
+    import d2a_agents.policy.checkpoints
+
+    seen = {}
+
+    class Result:
+        def summary(self) -> str:
+            return ""
+
+    def evaluate_checkpoint(path, task, episodes, seed, **options):
+        seen.update(options, path=path)
+        return Result()
+
+    monkeypatch.setattr(d2a_agents.policy.checkpoints, "evaluate_checkpoint", evaluate_checkpoint)
+    main(["eval", "--policy", "runs/p", "--task", "push", "--n-action-steps", "1"])
+    assert (seen["path"], seen["n_action_steps"]) == ("runs/p", 1)
+    main(["eval", "--policy", "runs/p", "--task", "push"])
+    assert seen["n_action_steps"] is None  # the checkpoint's own
+    with pytest.raises(SystemExit, match="expert acts step by step"):
+        main(["eval", "--policy", "expert", "--n-action-steps", "1"])
+
+
 def test_abbreviated_options_are_refused(captured, capsys):
     main(["demo", "--out", "runs/demo"])
     assert captured["config"].out == "runs/demo"
@@ -165,6 +187,7 @@ def test_abbreviated_options_are_refused(captured, capsys):
 
 @pytest.mark.parametrize("argv, message", [
     (["eval", "--policy", "p.pt", "--seed", "-1"], "argument --seed: must be at least 0, got -1"),
+    (["eval", "--policy", "p.pt", "--n-action-steps", "0"], "argument --n-action-steps: must be at least 1"),
     (["bench", "envs", "--steps", "0"], "argument --steps: must be at least 1, got 0"),
     (["train-wm", "--data", "d", "--out", "o", "--batch-size", "0"], "argument --batch-size: must be at least 1"),
     (["train-policy", "--data", "d", "--out", "o", "--policy-points", "0"],

@@ -144,6 +144,18 @@ def test_training_resumes_from_its_checkpoint(reach_data, tmp_path):
     assert not torch.equal(first.net.input.weight, resumed.net.input.weight)
 
 
+def test_a_checkpoint_acts_with_another_number_of_actions_per_plan(reach_data, tmp_path):
+    train_policy(dataclasses.replace(policy_config("mp1", reach_data, tmp_path, steps=1), eval_episodes=0))
+    stored, _ = load_policy(tmp_path)
+    replanning, _ = load_policy(tmp_path, n_action_steps=1)
+    assert (stored.config.executed_actions, replanning.config.executed_actions) == (3, 1)
+    assert all(torch.equal(a, b) for a, b in zip(stored.state_dict().values(), replanning.state_dict().values(),
+                                                strict=True))  # the same network and normalizers
+    assert load_torchrl_policy(tmp_path / CHECKPOINT_NAME, 1).policy.config.executed_actions == 1  # eval workers
+    result = evaluate_checkpoint(tmp_path, "reach", 1, seed=0, n_action_steps=1, progress=False)
+    assert len(result.successes) == 1
+
+
 class Killed(Exception):
     """Stands for the process being killed."""
 

@@ -91,6 +91,27 @@ def test_policy_plans_once_per_chunk_and_forgets_on_reset(monkeypatch):
     assert len(windows) == 4 and windows[3]["agent_pos"][0, :, 0].tolist() == [9.0, 9.0]
 
 
+@pytest.mark.parametrize("n_action_steps, planned_at", [(1, list(range(7))), (2, [0, 2, 4, 6]), (9, [0, 3, 6])])
+def test_n_action_steps_sets_how_often_the_policy_plans(n_action_steps, planned_at, monkeypatch):
+    """Executed actions per chunk: n_action_steps, at most the chunk's actions from the current step on."""
+    policy = tiny_policy("mp1", n_action_steps=n_action_steps)
+    planned = []
+    original = policy.predict_action_chunk
+
+    def recording(window, generator=None):
+        planned.append(int(window["agent_pos"][0, -1, 0]))  # the step whose observation is the latest
+        return original(window, generator)
+
+    monkeypatch.setattr(policy, "predict_action_chunk", recording)
+    cloud = np.random.default_rng(0).random((32, 3)).astype(np.float32)
+    policy.reset(seed=0)
+    for step in range(7):
+        policy.select_action({"point_cloud": cloud, "agent_pos": np.full(4, step, np.float32)})
+    assert planned == planned_at
+    with pytest.raises(ValueError, match="n_action_steps must be at least 1"):
+        PolicyConfig(algo="mp1", n_action_steps=0)
+
+
 def test_an_episode_s_actions_depend_on_its_seed_only():
     policy = tiny_policy("mp1")
     observation = {"point_cloud": np.random.default_rng(1).random((32, 3)).astype(np.float32),

@@ -117,6 +117,8 @@ class PolicyConfig:
             raise ValueError(f"unknown algo {self.algo!r}; choose one of {ALGORITHMS}")
         if self.num_points < 1:
             raise ValueError(f"num_points must be at least 1, not {self.num_points}")
+        if self.n_action_steps < 1:
+            raise ValueError(f"n_action_steps must be at least 1, not {self.n_action_steps}")
         variant = self.variant
         state = variant.observation == "state"
         encoder = dataclasses.replace(

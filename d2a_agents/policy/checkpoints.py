@@ -7,6 +7,7 @@ and hash, so the env a policy is evaluated in is the one it was trained with.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from pathlib import Path
 from typing import Any
@@ -27,8 +28,14 @@ def policy_file(path: str | Path) -> Path:
     return path / CHECKPOINT_NAME if path.is_dir() else path
 
 
-def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, Any]]:
-    """The policy of a checkpoint (a file or a run directory; EMA weights by default) and its metadata."""
+def load_policy(path: str | Path, ema: bool = True,
+                n_action_steps: int | None = None) -> tuple[Policy, dict[str, Any]]:
+    """The policy of a checkpoint (a file or a run directory; EMA weights by default) and its metadata.
+
+    ``n_action_steps`` sets how many actions of each planned chunk the policy executes before
+    it plans again (default: the checkpoint's; 1 plans after every action). It changes acting
+    only: the network and its training windows stay those of the checkpoint.
+    """
     path = policy_file(path)
     payload = load_checkpoint(path, CHECKPOINT_KIND)
     try:
@@ -36,6 +43,8 @@ def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, A
     except (KeyError, TypeError) as error:  # a field added or removed since the checkpoint was written
         raise CheckpointError(f"{path} holds a policy configuration this version cannot read ({error!r}); "
                               "train the policy again") from error
+    if n_action_steps is not None:
+        config = dataclasses.replace(config, n_action_steps=n_action_steps)
     dims = {"action": payload["action_dim"], config.encoder.state_key: payload["state_dim"], "point_cloud": 3}
     normalizers = {key: Normalizer.placeholder(dims[key]) for key in normalizer_keys(config)}
     try:  # the normalizers' statistics come with the weights
@@ -47,9 +56,9 @@ def load_policy(path: str | Path, ema: bool = True) -> tuple[Policy, dict[str, A
     return policy.eval(), payload
 
 
-def load_torchrl_policy(path: str | Path) -> TorchRLPolicy:
+def load_torchrl_policy(path: str | Path, n_action_steps: int | None = None) -> TorchRLPolicy:
     """A checkpoint's EMA policy as a TorchRL policy (a picklable factory for eval workers)."""
-    return TorchRLPolicy(load_policy(path)[0])
+    return TorchRLPolicy(load_policy(path, n_action_steps=n_action_steps)[0])
 
 
 def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
@@ -68,19 +77,19 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
 
 def evaluate_checkpoint(
     path: str | Path, task: str, episodes: int, seed: int, workers: int = 1, progress: bool = True,
-    end_on_success: bool = False, ray_address: str | None = None,
+    end_on_success: bool = False, ray_address: str | None = None, n_action_steps: int | None = None,
 ) -> EvaluationResult:
     """Evaluate a checkpoint's EMA policy on ``task`` in the env it was trained with (its
     point-cloud settings, its world model when it imagines); a task it was not trained on,
     or a checkpoint it cannot read, is refused before any worker starts. ``end_on_success``,
     ``ray_address``: see :func:`~collectors.evaluation.evaluate` (on Ray, the checkpoint and
-    its world model must be readable on every node)."""
-    _, payload = load_policy(path)
+    its world model must be readable on every node); ``n_action_steps``: see :func:`load_policy`."""
+    _, payload = load_policy(path, n_action_steps=n_action_steps)
     name = get_task(task).name
     if name not in payload["env_kwargs"]:
         raise ValueError(f"{path} was trained on {payload['tasks']}, not on {name}")
     path = policy_file(path).resolve()  # a worker on Ray may start elsewhere
-    return evaluate(functools.partial(load_torchrl_policy, path), name, episodes, seed,
+    return evaluate(functools.partial(load_torchrl_policy, path, n_action_steps), name, episodes, seed,
                     env_kwargs=eval_env_kwargs(payload, name), workers=workers, progress=progress,
                     end_on_success=end_on_success, ray_address=ray_address)
 
