@@ -64,8 +64,8 @@ def test_config_round_trip_and_bad_algo():
         PolicyConfig(algo="ppo")
 
 
-def test_policy_plans_once_per_chunk_and_forgets_on_reset(monkeypatch):
-    policy = tiny_policy("mp1")
+def recorded_plans(policy: Policy, monkeypatch) -> list[dict[str, torch.Tensor]]:
+    """The observation windows the policy plans from, appended as it plans."""
     windows = []
     original = policy.predict_action_chunk
 
@@ -74,6 +74,12 @@ def test_policy_plans_once_per_chunk_and_forgets_on_reset(monkeypatch):
         return original(window, generator)
 
     monkeypatch.setattr(policy, "predict_action_chunk", recording)
+    return windows
+
+
+def test_policy_plans_once_per_chunk_and_forgets_on_reset(monkeypatch):
+    policy = tiny_policy("mp1")
+    windows = recorded_plans(policy, monkeypatch)
     rng = np.random.default_rng(0)
 
     def observation(value: float) -> dict[str, np.ndarray]:
@@ -95,19 +101,12 @@ def test_policy_plans_once_per_chunk_and_forgets_on_reset(monkeypatch):
 def test_n_action_steps_sets_how_often_the_policy_plans(n_action_steps, planned_at, monkeypatch):
     """Executed actions per chunk: n_action_steps, at most the chunk's actions from the current step on."""
     policy = tiny_policy("mp1", n_action_steps=n_action_steps)
-    planned = []
-    original = policy.predict_action_chunk
-
-    def recording(window, generator=None):
-        planned.append(int(window["agent_pos"][0, -1, 0]))  # the step whose observation is the latest
-        return original(window, generator)
-
-    monkeypatch.setattr(policy, "predict_action_chunk", recording)
+    windows = recorded_plans(policy, monkeypatch)
     cloud = np.random.default_rng(0).random((32, 3)).astype(np.float32)
     policy.reset(seed=0)
     for step in range(7):
         policy.select_action({"point_cloud": cloud, "agent_pos": np.full(4, step, np.float32)})
-    assert planned == planned_at
+    assert [int(window["agent_pos"][0, -1, 0]) for window in windows] == planned_at  # the latest observation's step
     with pytest.raises(ValueError, match="n_action_steps must be at least 1"):
         PolicyConfig(algo="mp1", n_action_steps=0)
 
