@@ -96,10 +96,11 @@ def _env_kwargs(args: argparse.Namespace) -> dict[str, object]:
 def cmd_tasks(args: argparse.Namespace) -> None:
     import d2a_envs
 
-    specs = d2a_envs.list_tasks(suite=args.suite, difficulty=args.difficulty)
-    print(f"{'env id':<42} {'name':<28} {'suite':<10} difficulty")
+    specs = d2a_envs.list_tasks(suite=args.suite, difficulty=args.difficulty, table1=True if args.table1 else None)
+    print(f"{'env id':<42} {'name':<28} {'suite':<10} {'difficulty':<11} table I")
     for spec in specs:
-        print(f"{spec.env_id:<42} {spec.name:<28} {spec.suite:<10} {spec.difficulty or '-'}")
+        print(f"{spec.env_id:<42} {spec.name:<28} {spec.suite:<10} {spec.difficulty or '-':<11} "
+              f"{'yes' if spec.table1 else '-'}")
     print(f"{len(specs)} tasks")
 
 
@@ -341,6 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
     tasks = commands.add_parser("tasks", help="list the registered tasks")
     tasks.add_argument("--suite", choices=("metaworld", "adroit"), default=None)
     tasks.add_argument("--difficulty", choices=("easy", "medium", "hard", "very_hard"), default=None)
+    tasks.add_argument("--table1", action="store_true", help="only the 37 tasks of the paper's Table I")
     tasks.set_defaults(func=cmd_tasks)
 
     viz = commands.add_parser("viz", help="pictures").add_subparsers(dest="what", required=True)

@@ -22,6 +22,18 @@ _METAWORLD_DIFFICULTY = {
     "very_hard": ("shelf-place", "disassemble", "stick-pull", "stick-push", "pick-place-wall"),
 }
 
+# The 34 Meta-World tasks of the paper's Table I (as DP3's, MP1's and FlowPolicy's task
+# configs hold them): 21 easy, 4 medium, 4 hard, 5 very hard. The Adroit tasks are all in it.
+_METAWORLD_TABLE1 = frozenset({
+    "button-press", "button-press-wall", "dial-turn", "door-close", "door-open", "door-unlock",
+    "drawer-close", "faucet-close", "faucet-open", "handle-press", "handle-pull", "lever-pull",
+    "peg-unplug-side", "plate-slide", "plate-slide-back", "plate-slide-back-side", "plate-slide-side",
+    "reach", "reach-wall", "window-close", "window-open",
+    "coffee-pull", "hammer", "peg-insert-side", "soccer",
+    "assembly", "hand-insert", "pick-place", "push",
+    "disassemble", "pick-place-wall", "shelf-place", "stick-pull", "stick-push",
+})
+
 
 @dataclass(frozen=True)
 class TaskSpec:
@@ -33,6 +45,7 @@ class TaskSpec:
         task: the simulator's own task name (``hammer-v3``, ``door``).
         name: short kebab-case name used on the command line (``hammer``, ``adroit-door``).
         difficulty: Meta-World difficulty split; ``None`` for Adroit.
+        table1: whether the paper's Table I reports the task.
     """
 
     env_id: str
@@ -40,6 +53,7 @@ class TaskSpec:
     task: str
     name: str
     difficulty: str | None
+    table1: bool
 
 
 def _camel(kebab: str) -> str:
@@ -53,7 +67,7 @@ def _metaworld_specs() -> list[TaskSpec]:
         name = task.removesuffix("-v3")
         specs.append(TaskSpec(
             env_id=f"D2A-MetaWorld-{_camel(name)}-v0", suite="metaworld", task=task, name=name,
-            difficulty=difficulty_of.get(name, "easy"),
+            difficulty=difficulty_of.get(name, "easy"), table1=name in _METAWORLD_TABLE1,
         ))
     return specs
 
@@ -61,7 +75,8 @@ def _metaworld_specs() -> list[TaskSpec]:
 def _adroit_specs() -> list[TaskSpec]:
     return [
         TaskSpec(
-            env_id=f"D2A-Adroit-{_camel(task)}-v0", suite="adroit", task=task, name=f"adroit-{task}", difficulty=None
+            env_id=f"D2A-Adroit-{_camel(task)}-v0", suite="adroit", task=task, name=f"adroit-{task}", difficulty=None,
+            table1=True,
         )
         for task in ADROIT_ENV_IDS
     ]
@@ -70,8 +85,9 @@ def _adroit_specs() -> list[TaskSpec]:
 TASKS: tuple[TaskSpec, ...] = tuple(_metaworld_specs() + _adroit_specs())
 
 
-def list_tasks(suite: str | None = None, difficulty: str | None = None) -> list[TaskSpec]:
-    """Registered tasks, optionally filtered by suite and (Meta-World) difficulty."""
+def list_tasks(suite: str | None = None, difficulty: str | None = None, table1: bool | None = None) -> list[TaskSpec]:
+    """Registered tasks, optionally filtered by suite, (Meta-World) difficulty and whether the
+    paper's Table I reports them."""
     if suite is not None and suite not in SUITES:
         raise ValueError(f"unknown suite {suite!r}; choose one of {SUITES}")
     if difficulty is not None and difficulty not in DIFFICULTIES:
@@ -79,6 +95,7 @@ def list_tasks(suite: str | None = None, difficulty: str | None = None) -> list[
     return [
         spec for spec in TASKS
         if (suite is None or spec.suite == suite) and (difficulty is None or spec.difficulty == difficulty)
+        and (table1 is None or spec.table1 == table1)
     ]
 
 

@@ -197,6 +197,23 @@ def test_task_table():
     assert d2a_envs.get_task("pick-place-wall").env_id == "D2A-MetaWorld-PickPlaceWall-v0"
 
 
+def test_table1_tasks_are_the_papers_split():
+    """Table I's 34 Meta-World tasks by group (DP3's / MP1's task configs), and the 3 Adroit ones."""
+    split = {
+        "easy": "button-press button-press-wall dial-turn door-close door-open door-unlock drawer-close "
+                "faucet-close faucet-open handle-press handle-pull lever-pull peg-unplug-side plate-slide "
+                "plate-slide-back plate-slide-back-side plate-slide-side reach reach-wall window-close window-open",
+        "medium": "coffee-pull hammer peg-insert-side soccer",
+        "hard": "assembly hand-insert pick-place push",
+        "very_hard": "disassemble pick-place-wall shelf-place stick-pull stick-push",
+    }
+    for level, names in split.items():
+        assert {spec.name for spec in d2a_envs.list_tasks(difficulty=level, table1=True)} == set(names.split())
+    assert {spec.name for spec in d2a_envs.list_tasks(suite="adroit", table1=True)} == {
+        "adroit-hammer", "adroit-door", "adroit-pen"}
+    assert len(d2a_envs.list_tasks(table1=False)) == 50 - 34
+
+
 # --- bad input gets a clear error -------------------------------------------------------
 
 
