@@ -12,6 +12,13 @@ tag for any policy preset other than ``cpu``, so runs with other counts or budge
 workdir's data and world models); a rerun skips finished cells, completes a collection cut
 short and resumes an interrupted training from its checkpoint, so a long run can be killed and
 restarted. Demonstrations collected with other env settings are refused, not reused.
+``cells`` may name another directory for the cell files (for example one kept under version
+control, while data and checkpoints stay in the workdir).
+
+Several local processes may run the same bench in one workdir, one thread each: a process
+claims a cell before it trains it (a lock the system releases when the process dies) and
+skips cells another process holds; a task's demonstrations or world model being written by
+another process are waited for, not written twice.
 
 On Ray (``ray_address``), the demonstrations are collected as Ray jobs, each task's world
 model is a job, and every unfinished cell is a job that asks for ``threads`` CPUs (and a GPU
@@ -35,12 +42,14 @@ import hashlib
 import json
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 from tqdm import tqdm
 
-from collectors.atomic import atomic_write_text
+from collectors.atomic import DirectoryBusyError, atomic_write_text, exclusive_writer
 from collectors.collect import CollectConfig, collect
 from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
@@ -68,6 +77,7 @@ class SuccessBenchConfig:
     seeds: tuple[int, ...] = (0, 1, 2)
     demos: int = 10
     workdir: str = "outputs/bench_success"
+    cells: str | None = None  # directory of the finished cells' files (default: <workdir>/cells)
     policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget of every variant
     evaluations: int = 5  # periodic evaluations during training, the last one at the final step
     eval_episodes: int = 20  # per periodic evaluation (the paper: 20)
@@ -104,7 +114,8 @@ class Cell:
     of the final checkpoint). ``final_wins`` / ``final_episodes``: the final checkpoint's
     evaluation (the extra one when ``final_episodes`` > 0, else the last periodic one).
     ``train_seconds``: wall time of the training call that finished the run (shorter when
-    it resumed an interrupted run), periodic evaluations included.
+    it resumed an interrupted run), periodic evaluations included; ``final_seconds``: the
+    final evaluation's (``None`` in cells stored before it was recorded).
     """
 
     task: str
@@ -114,6 +125,7 @@ class Cell:
     final_wins: int
     final_episodes: int
     train_seconds: float
+    final_seconds: float | None = None
 
     @property
     def paper(self) -> float:
@@ -124,23 +136,38 @@ class Cell:
         return self.final_wins / self.final_episodes
 
 
+Result = TypeVar("Result")
+
+
+def _when_free(work: Callable[[], Result], what: str, poll_seconds: float = 10.0) -> Result:
+    """``work()``, retried while another process holds the directory it writes (it then
+    finds that process's finished result, or completes it)."""
+    while True:
+        try:
+            return work()
+        except DirectoryBusyError:
+            print(f"{what}: another process is writing it; waiting", flush=True)
+            time.sleep(poll_seconds)
+
+
 def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     """The task's demonstrations in the workdir: collected, or a collection cut short completed
     (``collect`` refuses a data set collected with other env settings)."""
     data = Path(config.workdir) / "data" / task
-    collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.demos, seed=0, append=True,
-                          env_kwargs=config.env_kwargs, progress=config.ray_address is None,
-                          ray_address=config.ray_address))
+    _when_free(lambda: collect(CollectConfig(
+        tasks=(task,), out=str(data), episodes=config.demos, seed=0, append=True, env_kwargs=config.env_kwargs,
+        progress=config.ray_address is None, ray_address=config.ray_address,
+    )), f"{task} demonstrations")
     return data
 
 
 def _world_model(config: SuccessBenchConfig, task: str, data: Path, device: str = "cpu") -> Path:
     path = Path(config.workdir) / "world_models" / f"{task}.pt"
-    train_world_model(TrainWorldModelConfig(
+    _when_free(lambda: train_world_model(TrainWorldModelConfig(
         data=str(data), out=str(path), model=config.world_model, steps=config.world_model_steps,
         validate_every=config.world_model_steps, seed=0, device=device, threads=config.threads,
         progress=config.ray_address is None,
-    ))  # resumes, or returns at once when the checkpoint is finished
+    )), f"{task} world model")  # resumes, or returns at once when the checkpoint is finished
     return path
 
 
@@ -182,7 +209,8 @@ def run_cell(
         wins, episodes = sum(final.successes), final.episodes
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes
-    return Cell(task, algo, seed, [point.success_rate for point in history], wins, episodes, train_seconds)
+    return Cell(task, algo, seed, [point.success_rate for point in history], wins, episodes, train_seconds,
+                time.perf_counter() - started - train_seconds)
 
 
 def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> str:
@@ -204,8 +232,13 @@ def _preset_tag(preset: PolicyPreset) -> str:
     return f"_{preset.steps}steps-{digest}"
 
 
-def _cell_path(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> Path:
-    return Path(config.workdir) / "cells" / f"{_cell_name(config, task, algo, seed)}.json"
+def cell_path(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> Path:
+    cells = Path(config.cells) if config.cells else Path(config.workdir) / "cells"
+    return cells / f"{_cell_name(config, task, algo, seed)}.json"
+
+
+def read_cell(path: Path) -> Cell:
+    return Cell(**json.loads(path.read_text()))
 
 
 def _describe(cell: Cell) -> str:
@@ -214,24 +247,35 @@ def _describe(cell: Cell) -> str:
 
 
 def _store(config: SuccessBenchConfig, cell: Cell) -> None:
-    path = _cell_path(config, cell.task, cell.algo, cell.seed)
+    path = cell_path(config, cell.task, cell.algo, cell.seed)
     atomic_write_text(path, json.dumps(dataclasses.asdict(cell), indent=1))
 
 
 def _run_locally(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -> dict[tuple[str, str, int], Cell]:
-    """The unfinished cells one after the other in this process, each stored as it finishes."""
+    """The unfinished cells one after the other in this process, each claimed first (cells
+    another process holds are skipped, those it finished meanwhile read back) and stored as
+    it finishes."""
     done = {}
     datasets: dict[str, Path] = {}
     world_models: dict[str, Path | None] = {}
+    runs = Path(config.workdir) / "runs"
     for task, algo, seed in todo:
-        if task not in datasets:  # once per task: the collection check opens the data set and an env
-            datasets[task] = _dataset(config, task)
-            world_models[task] = (_world_model(config, task, datasets[task])
-                                  if any(map(uses_imagination, config.algos)) else None)
-        print(f"training {algo} on {task}, seed {seed}", flush=True)
-        done[task, algo, seed] = cell = run_cell(config, task, algo, seed, datasets[task], world_models[task])
-        _store(config, cell)
-        print(_describe(cell), flush=True)
+        name = _cell_name(config, task, algo, seed)
+        try:
+            with exclusive_writer(runs, lock_name=f".{name}.lock"):
+                if (path := cell_path(config, task, algo, seed)).exists():
+                    done[task, algo, seed] = read_cell(path)
+                    continue
+                if task not in datasets:  # once per task: the collection check opens the data set and an env
+                    datasets[task] = _dataset(config, task)
+                    world_models[task] = (_world_model(config, task, datasets[task])
+                                          if any(map(uses_imagination, config.algos)) else None)
+                print(f"training {algo} on {task}, seed {seed}", flush=True)
+                done[task, algo, seed] = cell = run_cell(config, task, algo, seed, datasets[task], world_models[task])
+                _store(config, cell)
+                print(_describe(cell), flush=True)
+        except DirectoryBusyError:
+            print(f"{name}: another process is running it; skipped", flush=True)
     return done
 
 
@@ -268,13 +312,11 @@ def _run_on_ray(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) ->
     return done
 
 
-def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
-    """Every (task, algo, seed) cell, finished ones read back from disk (locally or on Ray);
-    prints the table of the cells that finished."""
+def run_grid(config: SuccessBenchConfig, grid: list[tuple[str, str, int]]) -> list[Cell]:
+    """The (task, algo, seed) cells of ``grid`` in its order, finished ones read back from disk,
+    the others run (locally or on Ray); returns the finished cells in the grid's order."""
     evaluation_interval(config.policy.steps, config.evaluations)  # a count it cannot give fails before any work
-    grid = [(task, algo, seed) for task in config.tasks for algo in config.algos for seed in config.seeds]
-    finished = {key: Cell(**json.loads(path.read_text())) for key in grid
-                if (path := _cell_path(config, *key)).exists()}
+    finished = {key: read_cell(path) for key in grid if (path := cell_path(config, *key)).exists()}
     for cell in finished.values():
         print(_describe(cell), flush=True)
     todo = [key for key in grid if key not in finished]
@@ -282,7 +324,13 @@ def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
         finished |= _run_locally(config, todo)
     elif todo:
         finished |= _run_on_ray(config, todo)
-    cells = [finished[key] for key in grid if key in finished]
+    return [finished[key] for key in grid if key in finished]
+
+
+def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
+    """Every (task, algo, seed) cell of the config; prints the table of the cells that finished."""
+    cells = run_grid(config, [(task, algo, seed) for task in config.tasks for algo in config.algos
+                              for seed in config.seeds])
     if not cells:
         return cells
     print()

@@ -307,6 +307,18 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
     ))
 
 
+def cmd_bench_table1(args: argparse.Namespace) -> None:
+    from benchmarks.table1 import Table1Config, run
+
+    base = Table1Config()
+    bench = _replace_given(base.bench, workdir=args.workdir, threads=args.threads, ray_address=args.ray,
+                           evaluations=args.evaluations, eval_layouts=args.eval_layouts, workers=args.workers,
+                           policy=_replace_given(base.bench.policy, steps=args.steps))
+    run(_replace_given(base, groups=tuple(args.group) if args.group else None,
+                       algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
+                       results=args.results, bench=bench), report_only=args.report)
+
+
 def cmd_bench_ray(args: argparse.Namespace) -> None:
     from benchmarks.ray_scaling import RayScalingConfig, run
 
@@ -556,6 +568,24 @@ def build_parser() -> argparse.ArgumentParser:
                                help="torch threads per cell; on Ray, the CPUs each cell asks for (default 1)")
     _add_ray_option(bench_success)
     bench_success.set_defaults(func=cmd_bench_success)
+
+    bench_table1 = bench.add_parser("table1", help="the paper's Table I: Meta-World groups x methods x seeds, "
+                                                   "resumable; per-group table beside the paper's rows, CSV, plot")
+    bench_table1.add_argument("--group", action="append", choices=("very_hard", "hard", "medium", "easy"),
+                              default=None, help="repeat for several (default: very_hard hard medium easy, in order)")
+    bench_table1.add_argument("--algo", action="append", choices=ALGOS, default=None, help="default: mp1 dp3")
+    bench_table1.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="default: 0 1 2")
+    bench_table1.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
+    bench_table1.add_argument("--evaluations", type=POSITIVE, default=None, help="periodic evaluations (default 5)")
+    _add_eval_layouts_option(bench_table1)
+    bench_table1.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
+    bench_table1.add_argument("--workdir", default=None, help="data, world models, checkpoints (default outputs/table1)")
+    bench_table1.add_argument("--results", default=None,
+                              help="finished cells and the report (default docs/table1); a rerun skips its cells")
+    bench_table1.add_argument("--threads", type=POSITIVE, default=None, help="torch threads per cell (default 1)")
+    bench_table1.add_argument("--report", action="store_true", help="only write the report of the finished cells")
+    _add_ray_option(bench_table1)
+    bench_table1.set_defaults(func=cmd_bench_table1)
 
     bench_ray = bench.add_parser("ray", help="the same small bench success grid on 1 and 2 Ray CPUs: wall time")
     bench_ray.add_argument("--task", default=None, help="default: reach")

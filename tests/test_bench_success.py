@@ -50,7 +50,7 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
     assert (cell.task, cell.algo, cell.seed) == ("reach", "mp1", 0)
     assert len(cell.periodic) == evaluations and cell.final_episodes == 1
     assert cell.final_wins == round(cell.periodic[-1])  # the last periodic evaluation is the final checkpoint's
-    stored = json.loads(bench._cell_path(config, "reach", "mp1", 0).read_text())
+    stored = json.loads(bench.cell_path(config, "reach", "mp1", 0).read_text())
     assert stored["periodic"] == cell.periodic
     assert (tmp_path / "success.png").stat().st_size > 0
 

@@ -1,0 +1,275 @@
+"""The paper's Table I on this toolkit (``d2a bench table1``): the 34 Meta-World tasks by
+difficulty group, every method, both protocols, one resumable command.
+
+The grid is ``d2a bench success``'s cells (same data, training, evaluation and workdir layout),
+ordered where the paper claims most first: group by group (Very Hard, Hard, Medium, Easy), in a
+group seed by seed, so that a grid cut short has whole seeds of whole groups. Finished cells are
+written to ``<results>/cells`` (small JSON files, meant to be kept under version control), so a
+rerun in a fresh checkout skips them; data, world models and checkpoints stay in the workdir.
+Two processes running the same command share the grid (each claims the next free cell).
+
+The report (``report``) gives per group and method the mean over the group's tasks for each
+seed that has every task, then mean and standard deviation over those seeds, for the paper
+protocol and the honest one (with the 95 % Wilson interval of all the group's final episodes
+pooled), beside the paper's rows; a per-task CSV and markdown table; and a plot.
+
+Example::
+
+    config = Table1Config(groups=("very_hard",), algos=("mp1",), seeds=(0,))
+    cells = run(config)            # trains what is missing, then writes the report
+    print(report(cells, config))
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+
+import d2a_envs
+from benchmarks.success import Cell, SuccessBenchConfig, cell_path, read_cell, run_grid, summarize
+from collectors.atomic import atomic_write_text
+from collectors.evaluation import honest_protocol
+from d2a_agents.policy.train import POLICY_PRESETS
+from d2a_agents.success_plot import SuccessBar, plot_success_bars
+from d2a_agents.world_model.triplane import CPU_PRESET
+
+GROUPS = ("very_hard", "hard", "medium", "easy")  # the grid's order: where the paper claims most first
+GROUP_TITLES = {"easy": "Easy", "medium": "Medium", "hard": "Hard", "very_hard": "Very Hard"}
+ADROIT_COLUMNS = ("adroit-hammer", "adroit-door", "adroit-pen")
+
+# The paper's Table I (success %, mean over each group's tasks; Adroit per task).
+PAPER_TABLE1: dict[str, dict[str, float]] = {
+    "dp3": {"easy": 87.3, "medium": 44.5, "hard": 32.7, "very_hard": 39.4,
+            "adroit-hammer": 100, "adroit-door": 56, "adroit-pen": 46},
+    "flowpolicy": {"easy": 84.8, "medium": 58.2, "hard": 40.2, "very_hard": 52.2,
+                   "adroit-hammer": 98, "adroit-door": 61, "adroit-pen": 54},
+    "mp1": {"easy": 88.2, "medium": 68.0, "hard": 58.1, "very_hard": 67.2,
+            "adroit-hammer": 100, "adroit-door": 69, "adroit-pen": 58},
+    "d2a": {"easy": 93.4, "medium": 74.7, "hard": 65.0, "very_hard": 74.2,
+            "adroit-hammer": 100, "adroit-door": 74, "adroit-pen": 63},
+}
+# Why the Adroit columns are empty: the issue that fills them.
+ADROIT_PENDING = ("Adroit columns empty: no policy learns yet from the planning experts' demonstrations "
+                  "(1-16 %); they join once Adroit demonstrations a policy can imitate exist.")
+
+# The dense clouds that the 128x128x32 world model reads (and the Table IV benches used).
+DENSE_CLOUDS: dict[str, object] = {"num_points": 4096, "image_size": 256, "backend": "render"}
+
+
+@dataclass(frozen=True)
+class Table1Config:
+    """What ``d2a bench table1`` runs; ``bench`` holds every per-cell setting (policy preset,
+    evaluations, env options, world model), its ``tasks`` / ``algos`` / ``seeds`` are unused."""
+
+    groups: tuple[str, ...] = GROUPS
+    algos: tuple[str, ...] = ("mp1", "dp3")
+    seeds: tuple[int, ...] = (0, 1, 2)
+    results: str = "docs/table1"  # cells/ (kept), table1.md, tasks.csv, tasks.md, table1.png
+    bench: SuccessBenchConfig = SuccessBenchConfig(
+        tasks=(), algos=(), seeds=(), workdir="outputs/table1", env_kwargs=DENSE_CLOUDS, eval_layouts="fresh",
+        world_model=CPU_PRESET, world_model_steps=2000,
+    )  # new layouts at each periodic evaluation, as the paper's runners
+
+    def __post_init__(self) -> None:
+        unknown = set(self.groups) - set(GROUPS)
+        if unknown:
+            raise ValueError(f"unknown group(s) {sorted(unknown)}; choose from {GROUPS}")
+
+    def cell_config(self) -> SuccessBenchConfig:
+        """The success bench's config of every cell, its cells kept in ``results``."""
+        return dataclasses.replace(self.bench, algos=self.algos, seeds=self.seeds,
+                                   cells=str(Path(self.results) / "cells"))
+
+
+def group_tasks(group: str) -> list[str]:
+    """The Table I tasks of a difficulty group, in the task table's order."""
+    return [spec.name for spec in d2a_envs.list_tasks(suite="metaworld", difficulty=group, table1=True)]
+
+
+def plan(config: Table1Config) -> list[tuple[str, str, int]]:
+    """The grid's (task, algo, seed) cells in the order they run: group by group, in a group
+    seed by seed, then task by task and method by method."""
+    return [(task, algo, seed) for group in config.groups for seed in config.seeds
+            for task in group_tasks(group) for algo in config.algos]
+
+
+@dataclass(frozen=True)
+class GroupRow:
+    """One method on one group: means over the group's tasks per complete seed, their mean and
+    standard deviation, and the honest protocol's pooled interval over every final episode."""
+
+    paper_by_seed: tuple[float, ...]
+    honest_by_seed: tuple[float, ...]
+    low: float
+    high: float
+    tasks_done: int  # tasks with at least one finished seed
+    tasks: int
+
+    @property
+    def seeds(self) -> int:
+        return len(self.honest_by_seed)
+
+
+def group_rows(cells: list[Cell]) -> dict[tuple[str, str], GroupRow]:
+    """Per (group, algo) with at least one cell: a seed counts where every task of the group has it."""
+    group_of = {task: group for group in GROUPS for task in group_tasks(group)}
+    rows = {}
+    for group in GROUPS:
+        tasks = group_tasks(group)
+        for algo in dict.fromkeys(cell.algo for cell in cells):
+            mine = [cell for cell in cells if cell.algo == algo and group_of.get(cell.task) == group]
+            if not mine:
+                continue
+            by_seed: dict[int, dict[str, Cell]] = {}
+            for cell in mine:
+                by_seed.setdefault(cell.seed, {})[cell.task] = cell
+            complete = [per_task for _, per_task in sorted(by_seed.items()) if len(per_task) == len(tasks)]
+            wins, episodes = sum(c.final_wins for c in mine), sum(c.final_episodes for c in mine)
+            _, low, high = honest_protocol([True] * wins + [False] * (episodes - wins))
+            rows[group, algo] = GroupRow(
+                tuple(statistics.fmean(c.paper for c in per_task.values()) for per_task in complete),
+                tuple(statistics.fmean(c.honest for c in per_task.values()) for per_task in complete),
+                low, high, len({cell.task for cell in mine}), len(tasks))
+    return rows
+
+
+def _mean_std(values: tuple[float, ...]) -> str:
+    spread = statistics.stdev(values) if len(values) > 1 else 0.0
+    return f"{100 * statistics.fmean(values):.1f} ± {100 * spread:.1f}"
+
+
+def _group_entry(row: GroupRow | None, protocol: str) -> str:
+    if row is None:
+        return "-"
+    if not row.seeds:
+        return f"({row.tasks_done}/{row.tasks} tasks)"
+    values = row.paper_by_seed if protocol == "paper" else row.honest_by_seed
+    interval = f" [{100 * row.low:.0f}-{100 * row.high:.0f}]" if protocol == "honest" else ""
+    return f"{_mean_std(values)}{interval} ({row.seeds} seed{'s' if row.seeds > 1 else ''})"
+
+
+def report(cells: list[Cell], config: Table1Config) -> str:
+    """Markdown: the paper-format table (per group: mean ± std over complete seeds, both
+    protocols; the honest one with its pooled 95 % interval) beside the paper's rows."""
+    rows = group_rows(cells)
+    algos = list(dict.fromkeys(cell.algo for cell in cells)) or list(config.algos)
+    header = [GROUP_TITLES[group] for group in GROUPS[::-1]] + ["Adroit " + t.split("-")[1].title() for t in ADROIT_COLUMNS]
+    bench = config.cell_config()
+    lines = [
+        f"Success (%), Meta-World groups of the paper's Table I; {bench.demos} demonstrations per task, the "
+        f"`{_preset_name(bench)}` policy preset ({bench.policy.steps} steps x batch {bench.policy.batch_size}, "
+        f"{bench.policy.policy.num_points} points per cloud), clouds {_env_text(bench.env_kwargs)}. Paper protocol: "
+        f"mean of the best 5 of {bench.evaluations} evaluations of {bench.eval_episodes} episodes during "
+        f"training; honest: the final checkpoint on {bench.final_episodes} new layouts per seed. Each entry: "
+        "mean ± std over seeds of the group's mean over its tasks (a seed counts once every task of the group "
+        "has it), the honest one with the 95 % Wilson interval of the group's final episodes pooled; "
+        "(k/N tasks): a group not yet complete for any seed.",
+        "",
+        "| method | protocol | " + " | ".join(header) + " |",
+        "| --- | --- | " + " | ".join("---" for _ in header) + " |",
+    ]
+    for algo in algos:
+        for protocol in ("paper", "honest"):
+            entries = [_group_entry(rows.get((group, algo)), protocol) for group in GROUPS[::-1]]
+            lines.append(f"| `{algo}` | {protocol} | " + " | ".join(entries + ["-"] * len(ADROIT_COLUMNS)) + " |")
+    for method, values in PAPER_TABLE1.items():
+        entries = [f"{values[key]:g}" for key in (*GROUPS[::-1], *ADROIT_COLUMNS)]
+        lines.append(f"| {method} (paper) | paper | " + " | ".join(entries) + " |")
+    lines += ["", ADROIT_PENDING]
+    return "\n".join(lines)
+
+
+def _preset_name(bench: SuccessBenchConfig) -> str:
+    return next((name for name, preset in POLICY_PRESETS.items() if preset == bench.policy), "custom")
+
+
+def _env_text(env_kwargs: dict[str, object]) -> str:
+    return ", ".join(f"{key} {value}" for key, value in env_kwargs.items()) or "the env's defaults"
+
+
+def task_csv(cells: list[Cell]) -> str:
+    """One row per cell: task, group, method, seed, both protocols and the cell's times."""
+    group_of = {task: group for group in GROUPS for task in group_tasks(group)}
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["task", "group", "algo", "seed", "paper", "honest", "final_wins", "final_episodes",
+                     "train_seconds", "final_seconds"])
+    for cell in cells:
+        writer.writerow([cell.task, group_of.get(cell.task, "-"), cell.algo, cell.seed, f"{cell.paper:.4f}",
+                         f"{cell.honest:.4f}", cell.final_wins, cell.final_episodes, f"{cell.train_seconds:.0f}",
+                         "" if cell.final_seconds is None else f"{cell.final_seconds:.0f}"])
+    return out.getvalue()
+
+
+def task_table(cells: list[Cell]) -> str:
+    """Markdown, one row per task: per method, paper / honest over its seeds [pooled 95 %] (seeds)."""
+    summaries = summarize(cells)
+    algos = list(dict.fromkeys(algo for _, algo in summaries))
+    lines = ["| group | task | " + " | ".join(f"`{algo}`" for algo in algos) + " |",
+             "| --- | --- | " + " | ".join("---" for _ in algos) + " |"]
+    for group in GROUPS:
+        for task in group_tasks(group):
+            entries = []
+            for algo in algos:
+                row = summaries.get((task, algo))
+                seeds = sum(1 for cell in cells if (cell.task, cell.algo) == (task, algo))
+                entries.append("-" if row is None else (
+                    f"{100 * row.paper:.0f} / {100 * row.honest:.0f} [{100 * row.low:.0f}-{100 * row.high:.0f}]"
+                    f" ({seeds})"))
+            if any(entry != "-" for entry in entries):
+                lines.append(f"| {GROUP_TITLES[group]} | {task} | " + " | ".join(entries) + " |")
+    return "\n".join(lines)
+
+
+def plot(cells: list[Cell], path: str | Path) -> Path:
+    """Bars per group and method: honest group mean over complete seeds (pooled 95 % interval,
+    seeds as dots), the paper's Table I value for that method as a triangle."""
+    bars: dict[str, dict[str, SuccessBar]] = {}
+    for (group, algo), row in group_rows(cells).items():
+        if row.seeds:
+            bars.setdefault(algo, {})[GROUP_TITLES[group]] = SuccessBar(
+                statistics.fmean(row.honest_by_seed), row.low, row.high, row.honest_by_seed,
+                marker=PAPER_TABLE1[algo][group] / 100 if algo in PAPER_TABLE1 else None)
+    return plot_success_bars(bars, path, "Table I groups, honest protocol: mean over tasks (bars, pooled 95 % "
+                                         "interval; dots: seeds); triangles: the paper's value for the method")
+
+
+def cpu_hours(cells: list[Cell]) -> float:
+    """Training, periodic and final evaluations of the cells, in hours of one thread."""
+    return sum(cell.train_seconds + (cell.final_seconds or 0.0) for cell in cells) / 3600
+
+
+def write_report(cells: list[Cell], config: Table1Config) -> str:
+    """Write table1.md, tasks.csv, tasks.md and table1.png to ``results``; returns table1.md's text."""
+    results = Path(config.results)
+    text = report(cells, config)
+    atomic_write_text(results / "table1.md", text + "\n")
+    atomic_write_text(results / "tasks.csv", task_csv(cells))
+    atomic_write_text(results / "tasks.md", task_table(cells) + "\n")
+    if group_rows(cells) and any(row.seeds for row in group_rows(cells).values()):
+        plot(cells, results / "table1.png")
+    return text
+
+
+def finished_cells(config: Table1Config) -> list[Cell]:
+    """The grid's cells already in ``results/cells``, in the grid's order."""
+    bench = config.cell_config()
+    return [read_cell(path) for key in plan(config) if (path := cell_path(bench, *key)).exists()]
+
+
+def run(config: Table1Config = Table1Config(), report_only: bool = False) -> list[Cell]:
+    """Run the grid's missing cells (unless ``report_only``), then print and write the report
+    and the CPU time the finished cells took and the rest would take at their rate."""
+    grid = plan(config)
+    cells = finished_cells(config) if report_only else run_grid(config.cell_config(), grid)
+    print(write_report(cells, config))
+    hours = cpu_hours(cells)
+    print(f"\n{len(cells)} of {len(grid)} cells finished, {hours:.1f} CPU-hours (one thread per cell)"
+          + (f"; the other {len(grid) - len(cells)} at their mean rate: about "
+             f"{hours / len(cells) * (len(grid) - len(cells)):.1f} CPU-hours" if cells and len(cells) < len(grid)
+             else ""))
+    return cells
