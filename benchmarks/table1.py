@@ -157,7 +157,8 @@ def report(cells: list[Cell], config: Table1Config) -> str:
     protocols; the honest one with its pooled 95 % interval) beside the paper's rows."""
     rows = group_rows(cells)
     algos = list(dict.fromkeys(cell.algo for cell in cells)) or list(config.algos)
-    header = [GROUP_TITLES[group] for group in GROUPS[::-1]] + ["Adroit " + t.split("-")[1].title() for t in ADROIT_COLUMNS]
+    header = ([GROUP_TITLES[group] for group in GROUPS[::-1]]
+              + ["Adroit " + task.split("-")[1].title() for task in ADROIT_COLUMNS])
     bench = config.cell_config()
     lines = [
         f"Success (%), Meta-World groups of the paper's Table I; {bench.demos} demonstrations per task, the "

@@ -579,7 +579,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench_table1.add_argument("--evaluations", type=POSITIVE, default=None, help="periodic evaluations (default 5)")
     _add_eval_layouts_option(bench_table1)
     bench_table1.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
-    bench_table1.add_argument("--workdir", default=None, help="data, world models, checkpoints (default outputs/table1)")
+    bench_table1.add_argument("--workdir", default=None,
+                              help="data, world models, checkpoints (default outputs/table1)")
     bench_table1.add_argument("--results", default=None,
                               help="finished cells and the report (default docs/table1); a rerun skips its cells")
     bench_table1.add_argument("--threads", type=POSITIVE, default=None, help="torch threads per cell (default 1)")

@@ -10,6 +10,7 @@ Example::
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +38,8 @@ def plot_success_bars(bars: dict[str, dict[str, SuccessBar]], path: str | Path, 
         raise ValueError("nothing to plot: no variant has a figure")
     tasks = list(dict.fromkeys(task for per_task in bars.values() for task in per_task))
     width = 0.8 / len(bars)
-    fig, ax = plt.subplots(figsize=(2.2 + 1.5 * len(tasks) * max(1.0, len(bars) / 4), 4.0))
+    width_inches = 2.2 + 1.5 * len(tasks) * max(1.0, len(bars) / 4)
+    fig, ax = plt.subplots(figsize=(width_inches, 4.0))
     for k, (variant, per_task) in enumerate(bars.items()):
         offset = (k - (len(bars) - 1) / 2) * width
         xs = [i + offset for i, task in enumerate(tasks) if task in per_task]
@@ -52,7 +54,7 @@ def plot_success_bars(bars: dict[str, dict[str, SuccessBar]], path: str | Path, 
     ax.set_xticks(range(len(tasks)), tasks)
     ax.set_ylim(0, 105)
     ax.set_ylabel("success %")
-    ax.set_title(title, fontsize=9)
+    ax.set_title(textwrap.fill(title, width=int(14 * width_inches)), fontsize=9)  # ~14 characters an inch at 9 pt
     ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     path = Path(path)

@@ -1,0 +1,106 @@
+"""The Table I bench: its order, its per-group figures against hand computations, its files,
+and two processes sharing one grid."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+
+import pytest
+
+import benchmarks.success as success
+from benchmarks.success import Cell, SuccessBenchConfig
+from benchmarks.table1 import Table1Config, group_tasks, plan, report, run, task_csv
+from collectors.atomic import exclusive_writer
+from d2a.cli import main
+
+VERY_HARD = ["disassemble", "pick-place-wall", "shelf-place", "stick-pull", "stick-push"]
+
+
+def _cell(task: str, algo: str, seed: int, wins: int, periodic: list[float] | None = None) -> Cell:
+    return Cell(task, algo, seed, periodic or [wins / 100], wins, 100, train_seconds=600.0, final_seconds=300.0)
+
+
+def _wilson(wins: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    p = wins / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
+
+
+def test_plan_runs_group_by_group_then_seed_by_seed():
+    config = Table1Config(groups=("very_hard", "easy"), algos=("mp1", "dp3"), seeds=(0, 1))
+    cells = plan(config)
+    assert sorted(group_tasks("very_hard")) == VERY_HARD
+    assert len(cells) == (5 + 21) * 2 * 2
+    assert cells[:10] == [(task, algo, 0) for task in group_tasks("very_hard") for algo in ("mp1", "dp3")]
+    assert {seed for _, _, seed in cells[10:20]} == {1}
+    assert cells[20] == (group_tasks("easy")[0], "mp1", 0)
+
+
+def test_report_gives_group_means_over_complete_seeds():
+    tasks = group_tasks("very_hard")
+    cells = [_cell(task, "mp1", 0, wins) for task, wins in zip(tasks, (10, 20, 30, 40, 50), strict=True)]
+    cells += [_cell(task, "mp1", 1, wins) for task, wins in zip(tasks, (20, 30, 40, 50, 60), strict=True)]
+    cells.append(_cell(tasks[0], "mp1", 2, 90))  # seed 2 has one task only: not a complete seed
+    cells += [_cell("assembly", "mp1", 0, 70), _cell("push", "mp1", 0, 80)]  # Hard: 2 of its 4 tasks
+    text = report(cells, Table1Config(algos=("mp1",)))
+    rows = {tuple(part.strip() for part in line.split("|")[1:3]): line.split("|")[3:-1]
+            for line in text.splitlines() if line.startswith("| ")}
+    easy, medium, hard, very_hard, *adroit = (entry.strip() for entry in rows["`mp1`", "honest"])
+    # Seeds 0 and 1: group means 30 % and 40 %; sample std 7.07; pooled 440 wins of 1100 episodes.
+    low, high = _wilson(440, 1100)
+    assert very_hard == f"35.0 ± 7.1 [{100 * low:.0f}-{100 * high:.0f}] (2 seeds)"
+    assert hard == "(2/4 tasks)" and easy == medium == "-"
+    assert adroit == ["-", "-", "-"]
+    # One periodic evaluation each: the paper protocol equals the honest figure here.
+    assert rows["`mp1`", "paper"][3].strip() == "35.0 ± 7.1 (2 seeds)"
+    paper_row = [entry.strip() for entry in rows["mp1 (paper)", "paper"]]
+    assert paper_row == ["88.2", "68", "58.1", "67.2", "100", "69", "58"]
+    assert "Adroit columns empty" in text
+
+
+def test_task_csv_has_one_row_per_cell():
+    cells = [_cell("push", "dp3", 1, 37, periodic=[0.2, 0.5, 0.4])]
+    (row,) = csv.DictReader(io.StringIO(task_csv(cells)))
+    assert row == {"task": "push", "group": "hard", "algo": "dp3", "seed": "1", "paper": "0.3667", "honest": "0.3700",
+                   "final_wins": "37", "final_episodes": "100", "train_seconds": "600", "final_seconds": "300"}
+
+
+def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
+    config = Table1Config(groups=("very_hard",), algos=("mp1",), seeds=(0,), results=str(tmp_path))
+    for task in VERY_HARD[:4]:
+        success._store(config.cell_config(), _cell(task, "mp1", 0, 50))
+    main(["bench", "table1", "--group", "very_hard", "--algo", "mp1", "--seed", "0", "--results", str(tmp_path),
+          "--report"])
+    out = capsys.readouterr().out
+    assert "4 of 5 cells finished, 1.0 CPU-hours" in out and "the other 1 at their mean rate: about 0.2" in out
+    assert "(4/5 tasks)" in (tmp_path / "table1.md").read_text()
+    assert len((tmp_path / "tasks.csv").read_text().splitlines()) == 5
+    assert not (tmp_path / "table1.png").exists()  # no complete seed to draw yet
+    success._store(config.cell_config(), _cell(VERY_HARD[4], "mp1", 0, 50))
+    run(config, report_only=True)
+    assert (tmp_path / "table1.png").stat().st_size > 0
+
+
+def test_a_cell_another_process_holds_is_skipped(tmp_path, monkeypatch):
+    config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), seeds=(0, 1), workdir=str(tmp_path))
+    trained = []
+    monkeypatch.setattr(success, "_dataset", lambda config, task: tmp_path / "data" / task)
+    monkeypatch.setattr(success, "run_cell", lambda config, task, algo, seed, data, world_model:
+                        trained.append(seed) or _cell(task, algo, seed, 10))
+    held = success.cell_path(config, "reach", "mp1", 0).stem
+    with exclusive_writer(tmp_path / "runs", lock_name=f".{held}.lock"):  # another process trains seed 0
+        cells = success.run_grid(config, [("reach", "mp1", 0), ("reach", "mp1", 1)])
+    assert trained == [1] and [cell.seed for cell in cells] == [1]
+    # Once the other process has stored seed 0, a rerun reads it back and trains nothing.
+    success._store(config, _cell("reach", "mp1", 0, 20))
+    cells = success.run_grid(config, [("reach", "mp1", 0), ("reach", "mp1", 1)])
+    assert [cell.final_wins for cell in cells] == [20, 10]
+    assert trained == [1]
+
+
+def test_unknown_group_is_refused():
+    with pytest.raises(ValueError, match="unknown group"):
+        Table1Config(groups=("impossible",))
