@@ -1,38 +1,40 @@
 """Success-rate benchmark (``d2a bench success``): policy variants side by side.
 
 For each task: collect (or reuse) the expert demonstrations, train one world model that the
-imagination variants share, then for every (variant, seed) train a policy on the same demos
-with the same budget, evaluate it periodically during training (the paper's protocol: the
-mean of the top-5 evaluations) and evaluate its final checkpoint on new layouts (the honest
-protocol: one checkpoint chosen in advance, a Wilson interval). Prints a markdown table.
+imagination variants share (on the same demonstrations as the policies), then for every
+(variant, seed) train a policy on the same demos with the same budget, evaluate it periodically
+during training (the paper's protocol: the mean of the top-5 evaluations) and evaluate its
+final checkpoint on new layouts (the honest protocol: one checkpoint chosen in advance, a
+Wilson interval). Prints a markdown table.
 
 Every finished (task, variant, seed) is stored as ``cells/<task>_<algo>_s<seed>_e<N>.json``
-(atomic write; N the number of periodic evaluations, ``_fresh`` for new layouts at each, and a
-tag for any policy preset other than ``cpu``, so runs with other counts or budgets share the
-workdir's data and world models); a rerun skips finished cells, completes a collection cut
-short and resumes an interrupted training from its checkpoint, so a long run can be killed and
-restarted. Demonstrations collected with other env settings are refused, not reused.
-``cells`` may name another directory for the cell files (for example one kept under version
-control, while data and checkpoints stay in the workdir).
+(atomic write; N the number of periodic evaluations, ``_fresh`` for new layouts at each,
+``_d<K>`` for K demonstrations other than 10, and a tag for any policy preset other than
+``cpu``, so runs with other counts or budgets share the workdir's data and world models); a
+rerun skips finished cells, completes a collection cut short and resumes an interrupted
+training from its checkpoint, so a long run can be killed and restarted. Demonstrations
+collected with other env settings are refused, not reused. ``cells`` may name another directory
+for the cell files (for example one kept under version control, while data and checkpoints stay
+in the workdir).
 
 Several local processes may run the same bench in one workdir, one thread each: a process
-claims a cell before it trains it (a lock the system releases when the process dies) and
-skips cells another process holds; a task's demonstrations or world model being written by
-another process are waited for, not written twice.
+claims a cell before it trains it (a lock the system releases when the process dies) and skips
+cells another process holds; a task's demonstrations or world model being written by another
+process are waited for, not written twice.
 
-On Ray (``ray_address``), the demonstrations are collected as Ray jobs, each task's world
-model is a job, and every unfinished cell is a job that asks for ``threads`` CPUs (and a GPU
-where the cluster has one, training there); the driver writes each cell's file as it
-arrives, so the directory and the table are those of a local run. A cell whose worker died
-on every retry is reported as missing; a rerun resumes it from its checkpoint. The workdir
-must be readable and writable on every node (one machine, or a shared filesystem).
+On Ray (``ray_address``), the demonstrations are collected as Ray jobs, each task's world model
+is a job, and every unfinished cell is a job that asks for ``threads`` CPUs (and a GPU where
+the cluster has one, training there); the driver writes each cell's file as it arrives, so the
+directory and the table are those of a local run. A cell whose worker died on every retry is
+reported as missing; a rerun resumes it from its checkpoint. The workdir must be readable and
+writable on every node (one machine, or a shared filesystem).
 
-Two presets: ``paper`` (the paper's protocol shape and the policy's full-size networks:
-3 seeds, 15 evaluations of 20 episodes, 100 final episodes; GPU work) and ``cpu`` (the same
-protocol shape with the ``cpu`` policy preset: 3 seeds, 5 evaluations of 20 episodes, 100
-final episodes; ``evaluations=15`` gives the paper's count). ``mp1-state``, the same action
-expert on privileged state, is the perception reference: the gap between it and ``mp1`` is
-what perception costs.
+Two presets: ``paper`` (the paper's protocol shape and the policy's full-size networks: 3
+seeds, 15 evaluations of 20 episodes, 100 final episodes; GPU work) and ``cpu`` (the same
+protocol shape with the ``cpu`` policy preset: 3 seeds, 5 evaluations of 20 episodes, 100 final
+episodes; ``evaluations=15`` gives the paper's count). ``mp1-state``, the same action expert on
+privileged state, is the perception reference: the gap between it and ``mp1`` is what
+perception costs.
 """
 
 from __future__ import annotations
@@ -68,6 +70,9 @@ PAPER_REFERENCE = {
 }
 
 
+DEFAULT_DEMOS = 10  # the paper's Table I count; cells of another count carry it in their names
+
+
 @dataclass(frozen=True)
 class SuccessBenchConfig:
     """What ``d2a bench success`` runs (defaults: the ``cpu`` preset)."""
@@ -75,7 +80,7 @@ class SuccessBenchConfig:
     tasks: tuple[str, ...] = ("hammer", "lever-pull", "assembly", "push", "stick-pull")
     algos: tuple[str, ...] = ("d2a", "d2a-no-cfg", "mp1", "dp3", "mp1-state")
     seeds: tuple[int, ...] = (0, 1, 2)
-    demos: int = 10
+    demos: int = DEFAULT_DEMOS  # per cell: the first ``demos`` of one collection per task (grown as needed)
     workdir: str = "outputs/bench_success"
     cells: str | None = None  # directory of the finished cells' files (default: <workdir>/cells)
     policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget of every variant
@@ -162,9 +167,9 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
 
 
 def _world_model(config: SuccessBenchConfig, task: str, data: Path, device: str = "cpu") -> Path:
-    path = Path(config.workdir) / "world_models" / f"{task}.pt"
+    path = Path(config.workdir) / "world_models" / f"{task}{_demos_tag(config)}.pt"
     _when_free(lambda: train_world_model(TrainWorldModelConfig(
-        data=str(data), out=str(path), model=config.world_model, steps=config.world_model_steps,
+        data=str(data), out=str(path), model=config.world_model, steps=config.world_model_steps, demos=config.demos,
         validate_every=config.world_model_steps, seed=0, device=device, threads=config.threads,
         progress=config.ray_address is None,
     )), f"{task} world model")  # resumes, or returns at once when the checkpoint is finished
@@ -199,7 +204,7 @@ def run_cell(
         preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=algo),
         world_model=str(world_model) if uses_imagination(algo) else None,
         eval_every=evaluation_interval(preset.steps, config.evaluations), eval_episodes=config.eval_episodes,
-        eval_layouts=config.eval_layouts, eval_workers=workers, seed=seed, threads=config.threads,
+        eval_layouts=config.eval_layouts, eval_workers=workers, seed=seed, threads=config.threads, demos=config.demos,
         device=device or config.device, progress=progress,
     ))
     train_seconds = time.perf_counter() - started
@@ -219,7 +224,11 @@ def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> s
     of 5 and of 15 evaluations, on fixed or fresh layouts, of one budget or another, share a
     workdir (its data and world models) without one being read back as another."""
     fresh = "_fresh" if config.eval_layouts == "fresh" else ""
-    return f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_preset_tag(config.policy)}"
+    return f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_demos_tag(config)}{_preset_tag(config.policy)}"
+
+
+def _demos_tag(config: SuccessBenchConfig) -> str:
+    return "" if config.demos == DEFAULT_DEMOS else f"_d{config.demos}"
 
 
 def _preset_tag(preset: PolicyPreset) -> str:

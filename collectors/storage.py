@@ -19,7 +19,7 @@ import json
 import math
 import os
 import shutil
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from importlib import metadata as package_metadata
 from pathlib import Path
 from typing import Any
@@ -225,6 +225,36 @@ class DemoDataset:
             raise DatasetError(f"{directory} holds no episodes (did every collection attempt fail?)")
         dataset.check_finite()
         return dataset
+
+    def episode_counts(self) -> dict[str, int]:
+        """Stored episodes per task."""
+        counts = dict.fromkeys(self.metadata.tasks, 0)
+        for episode in self.metadata.episodes:
+            counts[episode.task] += 1
+        return counts
+
+    def holds_exactly(self, demos: int | None) -> bool:
+        """Whether ``demos`` episodes per task are every episode (``None``: all of them, trivially):
+        a trainer asked for them records the run as one on the whole data set."""
+        return demos is None or set(self.episode_counts().values()) == {demos}
+
+    def first_episodes(self, demos: int) -> DemoDataset:
+        """A read-only view of the first ``demos`` episodes of each task, so that runs on 1, 2,
+        5, 10 ... demonstrations of one collection train on nested sets. The view's episodes must
+        lead the storage (always true of a single-task data set); DatasetError where a task has
+        fewer episodes or they do not."""
+        episodes, kept = [], dict.fromkeys(self.metadata.tasks, 0)
+        for episode in self.metadata.episodes:
+            if kept[episode.task] < demos:
+                episodes.append(episode)
+                kept[episode.task] += 1
+        short = {task: count for task, count in kept.items() if count < demos}
+        if short:
+            raise DatasetError(f"{self.directory} holds fewer than {demos} episodes of {short} (task: episodes)")
+        if episodes != self.metadata.episodes[: len(episodes)]:
+            raise DatasetError(f"{self.directory}: the first {demos} episodes of each task are not the first in "
+                               "the storage; collect each task into its own data set to train on a prefix")
+        return DemoDataset(self.directory, replace(self.metadata, episodes=episodes), self.buffer)
 
     # --- writing --------------------------------------------------------------------------
 

@@ -52,6 +52,9 @@ POSITIVE, NON_NEGATIVE = _int_at_least(1), _int_at_least(0)
 NON_NEGATIVE_FLOAT = _finite_at_least(0.0)
 
 
+DEMOS_HELP = "train on the first N episodes of each task (default: all); runs on 1, 2, 5 ... of one data set nest"
+
+
 def _add_env_options(parser: argparse.ArgumentParser, several_tasks: bool = False) -> None:
     if several_tasks:
         parser.add_argument("--task", action="append", required=True, help="task name or env id; repeat for several")
@@ -170,7 +173,7 @@ def cmd_train_wm(args: argparse.Namespace) -> None:
     config = _replace_given(
         TrainWorldModelConfig(data=args.data, out=args.out, model=model), steps=args.steps,
         batch_size=args.batch_size, learning_rate=args.lr, queries=args.queries, validate_every=args.validate_every,
-        seed=args.seed, device=args.device, threads=args.threads,
+        seed=args.seed, device=args.device, threads=args.threads, demos=args.demos,
     )
     _, history = train_world_model(config)
     if history:
@@ -203,7 +206,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                                       world_model=args.world_model),
         eval_every=args.eval_every, eval_episodes=args.eval_episodes, eval_layouts=args.eval_layouts,
         eval_workers=args.workers, seed=args.seed, holdout_episodes=args.holdout_episodes, device=args.device,
-        threads=args.threads, logger=args.logger, augment_shift=args.augment_shift,
+        threads=args.threads, logger=args.logger, augment_shift=args.augment_shift, demos=args.demos,
     )
     _, history = train_policy(config)
     for point in history:
@@ -303,7 +306,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
         workdir=args.workdir, workers=args.workers, env_kwargs=env_kwargs or None, world_model=world_model,
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
-        eval_layouts=args.eval_layouts,
+        eval_layouts=args.eval_layouts, demos=args.demos,
     ))
 
 
@@ -405,6 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
     train_wm.add_argument("--encoder", choices=("volume-conv", "point-scatter"), default=None,
                           help="volume-conv: Conv3d over the grid (the paper); point-scatter: per-voxel MLP "
                                "scattered onto the planes, cost follows the occupied voxels")
+    train_wm.add_argument("--demos", type=POSITIVE, default=None, help=DEMOS_HELP)
     train_wm.add_argument("--steps", type=POSITIVE, default=None)
     train_wm.add_argument("--batch-size", type=POSITIVE, default=None)
     train_wm.add_argument("--lr", type=float, default=None)
@@ -424,6 +428,7 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
                               help="networks and budget: cpu (64 points, narrow, 4000 steps of 256, lr 1e-3) or "
                                    "paper (1024 points, 47k steps of 128, lr 1e-4; GPU work)")
+    train_policy.add_argument("--demos", type=POSITIVE, default=None, help=DEMOS_HELP)
     train_policy.add_argument("--steps", type=POSITIVE, default=None, help="default: the preset's")
     train_policy.add_argument("--batch-size", type=POSITIVE, default=None, help="default: the preset's")
     train_policy.add_argument("--lr", type=float, default=None, help="default: the preset's")
@@ -549,6 +554,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench_success.add_argument("--algo", action="append", default=None,
                                choices=ALGOS, help="default: d2a d2a-no-cfg mp1 dp3 mp1-state")
     bench_success.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="default: the preset's")
+    bench_success.add_argument("--demos", type=POSITIVE, default=None,
+                               help="demonstrations per cell (default 10): the first N of one collection per task, "
+                                    "grown as needed, so cells of 1, 2, 5, ... train on nested sets")
     bench_success.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
     bench_success.add_argument("--evaluations", type=POSITIVE, default=None,
                                help="periodic evaluations during training, the last at the final step; the paper "

@@ -51,13 +51,16 @@ def load_for_resume(
     """The checkpoint to resume from, or ``None`` when there is none yet.
 
     Refuses one whose ``keys`` differ from ``expected`` (another model, grid, task list...):
-    resuming it would silently mix two runs.
+    resuming it would silently mix two runs. In a dict, a name the checkpoint lacks counts as
+    ``None``: a setting added after it was written, left at ``None``, does what older code did.
     """
     if not Path(path).exists():
         return None
     previous = load_checkpoint(path, kind)
     for key in keys:
         old, new = previous.get(key), expected[key]
+        if isinstance(old, dict) and isinstance(new, dict):
+            old = {**dict.fromkeys(new), **old}
         if old != new:
             if isinstance(old, dict) and isinstance(new, dict):
                 differences = ", ".join(f"{name}: {old.get(name)!r} -> {new.get(name)!r}"

@@ -97,3 +97,10 @@ def test_cells_of_another_policy_budget_are_named_apart():
     # The tag depends on the preset's fields only, not on the object.
     again = dataclasses.replace(cpu, policy=dataclasses.replace(POLICY_PRESETS["cpu"], steps=6000))
     assert bench._cell_name(again, "push", "d2a", 1) == bench._cell_name(longer, "push", "d2a", 1)
+
+
+def test_cells_of_another_demonstration_count_are_named_apart():
+    ten = SuccessBenchConfig(evaluations=15, eval_layouts="fresh")
+    five = dataclasses.replace(ten, demos=5)
+    assert bench._cell_name(ten, "push", "mp1", 0) == "push_mp1_s0_e15_fresh"  # the names of cells stored before
+    assert bench._cell_name(five, "push", "mp1", 0) == "push_mp1_s0_e15_fresh_d5"

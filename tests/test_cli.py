@@ -251,3 +251,30 @@ def test_ray_option_takes_an_optional_address(collect_config):
         assert collect_config["config"].ray_address == address
     main(["bench", "success", "--ray", "ray://head:10001", "--threads", "2"])
     assert (collect_config["config"].ray_address, collect_config["config"].threads) == ("ray://head:10001", 2)
+
+
+def test_demos_reach_the_trainers_and_the_bench(captured):
+    main(["train-policy", "--data", "d", "--out", "o", "--demos", "5"])
+    assert captured["config"].demos == 5
+    main(["train-wm", "--data", "d", "--out", "o.pt", "--demos", "2"])
+    assert captured["config"].demos == 2
+    main(["bench", "success", "--demos", "1"])
+    assert captured["config"].demos == 1
+    main(["train-policy", "--data", "d", "--out", "o"])
+    assert captured["config"].demos is None  # every episode
+
+
+def test_bench_table1_options_and_defaults(monkeypatch):
+    import benchmarks.table1
+
+    seen = {}
+    monkeypatch.setattr(benchmarks.table1, "run", lambda config, report_only: seen.update(config=config,
+                                                                                           report=report_only))
+    main(["bench", "table1"])
+    assert seen == {"config": benchmarks.table1.Table1Config(), "report": False}
+    main(["bench", "table1", "--group", "hard", "--algo", "d2a", "--seed", "2", "--evaluations", "15",
+          "--workdir", "w", "--results", "r", "--report"])
+    config = seen["config"]
+    assert (config.groups, config.algos, config.seeds, config.results) == (("hard",), ("d2a",), (2,), "r")
+    assert (config.bench.evaluations, config.bench.workdir, seen["report"]) == (15, "w", True)
+    assert config.cell_config().env_kwargs == {"num_points": 4096, "image_size": 256, "backend": "render"}

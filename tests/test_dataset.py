@@ -246,3 +246,26 @@ def test_shape_mismatch_is_refused():
         normalizer.normalize(torch.zeros(3, 4))
     with pytest.raises(ValueError, match="shape"):
         normalizer.unnormalize(torch.zeros(5, 1))
+
+
+def test_the_first_episodes_of_a_data_set_are_a_prefix_of_its_storage(tmp_path):
+    from collectors.collect import CollectConfig, collect
+    from collectors.storage import DatasetError, DemoDataset
+
+    out = tmp_path / "two_tasks"
+    collect(CollectConfig(tasks=("reach", "reach-wall"), out=str(out), episodes=2,
+                          env_kwargs={"image_size": 32, "num_points": 32}, progress=False))
+    dataset = DemoDataset.open(out)
+    assert dataset.episode_counts() == {"reach": 2, "reach-wall": 2}
+    assert dataset.holds_exactly(2) and dataset.holds_exactly(None) and not dataset.holds_exactly(1)
+    # Episodes 0-1 are Reach, 2-3 Reach-Wall: the first of each (0 and 2) do not lead the storage.
+    with pytest.raises(DatasetError, match="not the first in the storage"):
+        dataset.first_episodes(1)
+    with pytest.raises(DatasetError, match="fewer than 3 episodes"):
+        dataset.first_episodes(3)
+    dataset.metadata.episodes = dataset.metadata.episodes[:2]  # a Reach-only view of the same storage
+    dataset.metadata.tasks.pop("reach-wall")
+    view = dataset.first_episodes(1)
+    assert [episode.index for episode in view.metadata.episodes] == [0]
+    assert torch.equal(view.frames()["action"], dataset.episode(0)["action"])
+    assert len(dataset.metadata.episodes) == 2  # the view leaves the data set's own record alone

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from collectors.evaluation import evaluate
-from collectors.storage import DemoDataset
+from collectors.storage import DatasetError, DemoDataset
 from d2a_agents.checkpoint import CheckpointError, load_checkpoint
 from d2a_agents.policy.agent import PolicyConfig
 from d2a_agents.policy.checkpoints import (
@@ -317,3 +317,20 @@ def test_shift_augmentation_trains_on_meta_world_and_is_refused_where_it_is_not_
         dataclasses.replace(config, augment_shift=-0.01)
     paper = TrainPolicyConfig.from_preset(POLICY_PRESETS["paper"], data=reach_data, out=str(tmp_path))
     assert augment_shift_for(paper, ["reach"]) == 0.0  # the paper's recipe moves nothing
+
+
+def test_a_policy_on_the_first_demonstration_fits_its_normalizers_to_it_alone(reach_data, tmp_path):
+    config = dataclasses.replace(policy_config("mp1", reach_data, tmp_path / "one"), demos=1, trim_after_success=-1,
+                                 eval_episodes=0)
+    policy, _ = train_policy(config)
+    dataset = DemoDataset.open(reach_data)
+    first, both = dataset.episode(0)["action"], dataset.frames()["action"]
+    low = policy.normalizers["action"].low.float()
+    assert torch.allclose(low, first.min(0).values) and not torch.allclose(low, both.min(0).values)
+    assert torch.allclose(policy.normalizers["action"].high.float(), first.max(0).values)
+    assert load_checkpoint(tmp_path / "one" / CHECKPOINT_NAME, "policy")["run_config"]["demos"] == 1
+    # Asking for every episode by its count is a run on the whole set, recorded as before the option existed.
+    train_policy(dataclasses.replace(config, out=str(tmp_path / "all"), demos=2, steps=1))
+    assert load_checkpoint(tmp_path / "all" / CHECKPOINT_NAME, "policy")["run_config"]["demos"] is None
+    with pytest.raises(DatasetError, match="fewer than 3 episodes"):
+        train_policy(dataclasses.replace(config, out=str(tmp_path / "three"), demos=3))

@@ -883,3 +883,18 @@ def test_point_scatter_model_trains_and_serves_xy_but_not_volume():
         WorldModelConfig(encoder="point-scatter", feature_mode="volume")
     with pytest.raises(ValueError, match="encoder must be one of"):
         WorldModelConfig(encoder="sparse")
+
+
+def test_world_model_split_on_the_first_demonstrations():
+    from types import SimpleNamespace
+
+    from d2a_agents.world_model.train import split_episodes
+
+    episodes = [SimpleNamespace(index=i, task="push") for i in range(10)]
+    dataset = SimpleNamespace(metadata=SimpleNamespace(tasks={"push": {}}, episodes=episodes), directory="d")
+    assert split_episodes(dataset, 0.2) == (list(range(8)), [8, 9])
+    assert split_episodes(dataset, 0.2, demos=10) == (list(range(8)), [8, 9])  # all of them: as before
+    assert split_episodes(dataset, 0.2, demos=5) == ([0, 1, 2, 3, 4], [5])  # validated on the next one
+    assert split_episodes(dataset, 0.2, demos=1) == ([0], [1])
+    with pytest.raises(ValueError, match="fewer than demos=11"):
+        split_episodes(dataset, 0.2, demos=11)

@@ -105,6 +105,7 @@ class TrainPolicyConfig:
     weight_decay: float = 1e-6
     warmup_steps: int = 100
     ema_decay: float = 0.995
+    demos: int | None = None  # train on the first demos episodes of each task (None: all); nested sets of one pool
     holdout_episodes: int = 0  # the last k episodes of each task: never trained on, used by the perception check
     # Keep only this many frames after an episode's first success (-1: keep all). Scripted
     # experts succeed at steps 59-71 of 200 on Hammer and then hold still: 2/3 of the frames.
@@ -142,6 +143,8 @@ class TrainPolicyConfig:
         for name in ("steps", "batch_size", "checkpoint_every", "reliance_windows"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, not {getattr(self, name)}")
+        if self.demos is not None and self.demos < 1:
+            raise ValueError(f"demos must be at least 1, not {self.demos}")
         if self.trim_after_success < -1:
             raise ValueError(f"trim_after_success must be -1 (keep all) or >= 0, not {self.trim_after_success}")
         for name in ("holdout_episodes", "eval_every", "eval_episodes", "threads"):
@@ -324,6 +327,10 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
         torch.set_num_threads(config.threads)
     device = torch.device(config.device)
     dataset = DemoDataset.open_for_training(config.data)
+    if dataset.holds_exactly(config.demos):
+        config = dataclasses.replace(config, demos=None)  # every episode: recorded as a run on the whole set
+    else:
+        dataset = dataset.first_episodes(config.demos)
     if uses_imagination(config.policy.algo) and config.world_model is None:
         raise ValueError(f"algo {config.policy.algo!r} imagines the future: pass --world-model")
     # The imagined cloud at the policy's point count, as the env serves it when acting (eval_env_kwargs).

@@ -1,7 +1,9 @@
 """Train the triplane world model on stored demonstrations (``d2a train-wm``).
 
 Held-out episodes (the last ``holdout_fraction`` of each task's episodes, at least one)
-never enter training; they give the validation metrics. Checkpoints are written
+never enter training; they give the validation metrics. With ``demos``, the model trains on
+the first ``demos`` episodes of each task, as a policy trained on them, and validates on the
+episodes that follow them where the data set has more. Checkpoints are written
 atomically every ``checkpoint_every`` steps and carry the model config, the voxel grid,
 the tasks and the env kwargs; re-running the same command resumes from the last one.
 """
@@ -49,6 +51,7 @@ class TrainWorldModelConfig:
     focal_alpha: float | None = None  # balanced queries already balance the classes
     focal_gamma: float = 2.0
     holdout_fraction: float = 0.2
+    demos: int | None = None  # train on the first demos episodes of each task (None: all but the held-out ones)
     validate_every: int = 500
     validation_stride: int = 5  # evaluate every k-th held-out transition
     checkpoint_every: int = 100
@@ -66,6 +69,8 @@ class TrainWorldModelConfig:
             raise ValueError(f"learning_rate must be positive, not {self.learning_rate}")
         if self.threads < 0:
             raise ValueError(f"threads must not be negative, not {self.threads}")
+        if self.demos is not None and self.demos < 1:
+            raise ValueError(f"demos must be at least 1, not {self.demos}")
         if not 0 < self.holdout_fraction < 1:
             raise ValueError(f"holdout_fraction must lie in (0, 1), not {self.holdout_fraction}")
 
@@ -82,11 +87,21 @@ class ValidationResult:
     threshold: float = 0.5
 
 
-def split_episodes(dataset: DemoDataset, holdout_fraction: float) -> tuple[list[int], list[int]]:
-    """(train, held-out) episode ids: the last ``holdout_fraction`` of each task's episodes."""
+def split_episodes(
+    dataset: DemoDataset, holdout_fraction: float, demos: int | None = None
+) -> tuple[list[int], list[int]]:
+    """(train, held-out) episode ids: the last ``holdout_fraction`` of each task's episodes;
+    with ``demos``, training on the first ``demos`` of each task and holding out that fraction
+    of ``demos`` from the episodes after them (from the first ``demos`` where there are none)."""
     train, held_out = [], []
     for task in dataset.metadata.tasks:
         ids = [e.index for e in dataset.metadata.episodes if e.task == task]
+        if demos is not None and demos > len(ids):
+            raise ValueError(f"{dataset.directory} holds {len(ids)} {task} episodes, fewer than demos={demos}")
+        if demos is not None and demos < len(ids):
+            train += ids[:demos]
+            held_out += ids[demos : demos + max(1, round(demos * holdout_fraction))]
+            continue
         n_held = max(1, round(len(ids) * holdout_fraction)) if len(ids) > 1 else 0
         train += ids[: len(ids) - n_held]
         held_out += ids[len(ids) - n_held :]
@@ -174,12 +189,14 @@ def _train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldMode
         torch.set_num_threads(config.threads)
     device = torch.device(config.device)
     dataset = DemoDataset.open_for_training(config.data)
+    if dataset.holds_exactly(config.demos):
+        config = dataclasses.replace(config, demos=None)  # every episode: recorded as a run on the whole set
     box = CropBox.from_any(config.crop_box) if config.crop_box is not None else dataset_crop_box(dataset)
     grid = VoxelGrid(box, config.model.resolution)
     action_dim = int(dataset.frames()["action"].shape[-1])
     model_config = dataclasses.replace(config.model, action_dim=action_dim)
     config = dataclasses.replace(config, model=model_config)
-    train_ids, held_out_ids = split_episodes(dataset, config.holdout_fraction)
+    train_ids, held_out_ids = split_episodes(dataset, config.holdout_fraction, config.demos)
     frames = dataset.frames()
     train = WorldModelTransitions(frames, grid, model_config.horizon, model_config.action_history, train_ids)
     held_out = WorldModelTransitions(frames, grid, model_config.horizon, model_config.action_history, held_out_ids)
