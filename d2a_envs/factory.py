@@ -44,6 +44,7 @@ def make_env(
     physics_obs: bool = False,
     world_model: str | None = None,
     imagined_points: int | None = None,
+    imagined_output: str | None = None,
 ) -> gym.Env:
     """A suite env with point-cloud observations; ``None`` arguments take the suite default.
 
@@ -52,7 +53,8 @@ def make_env(
     adds ``imagined_point_cloud`` through the ``world_model`` wrapper plugin
     (:class:`~d2a_agents.world_model.observation.ImaginationWrapper`), of
     ``imagined_points`` points (default: ``num_points``; a policy that reads 64 points asks for 64,
-    which spares a farthest-point pass over thousands of points at every step).
+    which spares a farthest-point pass over thousands of points at every step); ``imagined_output``
+    ("future", the default, or "change") says what it holds.
     ``physics_obs`` (Adroit) adds the ``physics`` vector that the planning experts read.
     """
     if suite not in _SUITE_ENVS:
@@ -67,11 +69,12 @@ def make_env(
             raise ValueError(f"physics_obs is available for Adroit tasks, not {suite}")
         suite_kwargs["physics_obs"] = True
     env = PointCloudObservation(_SUITE_ENVS[suite](task, **suite_kwargs), config)
-    if imagined_points is not None and world_model is None:
-        raise ValueError("imagined_points needs a world_model")
+    if (imagined_points is not None or imagined_output is not None) and world_model is None:
+        raise ValueError("imagined_points and imagined_output need a world_model")
     if world_model is not None:
         from d2a_envs.tasks import TASKS
 
         name = next((spec.name for spec in TASKS if spec.suite == suite and spec.task == task), None)
-        env = plugin_wrapper("world_model")(env, world_model, task=name, num_points=imagined_points)
+        output = {} if imagined_output is None else {"output": imagined_output}
+        env = plugin_wrapper("world_model")(env, world_model, task=name, num_points=imagined_points, **output)
     return env

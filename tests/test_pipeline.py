@@ -91,9 +91,29 @@ def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_mode
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
     # acts with imagination, from the world model's absolute path (any working directory)
     assert eval_env_kwargs(payload, "reach")["world_model"] == str(Path(world_model).resolve())
+    assert "imagined_output" not in eval_env_kwargs(payload, "reach")  # the future cloud: the env's default
     gate = [(row["cfg_weight"], row["cfg_rho"], row["cfg_active"]) for row in payload["metrics"]]
     assert len(gate) == 3 and all(0 <= w <= 1 and -1 <= rho <= 1 and 0 <= active <= 1 for w, rho, active in gate)
     assert history[0].episodes == 1
+
+
+def test_d2a_change_trains_and_acts_on_the_voxels_its_world_model_fills(reach_data, world_model, tmp_path):
+    import gymnasium as gym
+
+    from d2a_agents.world_model.imagine import IMAGINED_KEY
+
+    _, history = train_policy(policy_config("d2a-change", reach_data, tmp_path, world_model=world_model))
+    assert history[0].episodes == 1
+    kwargs = eval_env_kwargs(load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy"), "reach")
+    assert kwargs["imagined_output"] == "change"
+    env = gym.make("D2A-MetaWorld-Reach-v0", **kwargs)
+    observation, _ = env.reset(seed=0)
+    grid = env.get_wrapper_attr("imaginer").grid
+    now = grid.voxelize(torch.as_tensor(observation["point_cloud"]))
+    voxels, inside = grid.indices(torch.as_tensor(observation[IMAGINED_KEY]))
+    assert observation[IMAGINED_KEY].shape == (64, 3) and inside.all()
+    assert not now[tuple(voxels.T)].any()  # every imagined point lies in a voxel empty now
+    env.close()
 
 
 def test_a_policy_refuses_a_world_model_swapped_after_training(reach_data, world_model, tmp_path):

@@ -670,6 +670,27 @@ def test_imaginer_decodes_the_imagined_voxels_keeping_observed_points_if_asked(k
     np.testing.assert_allclose(sorted(imagined.tolist()), sorted(expected), atol=1e-6)
 
 
+def test_imaginer_change_output_holds_the_voxels_it_fills_that_are_empty_now():
+    """The scene above: A stays, B empties, C fills. The change cloud is C's centre alone;
+    where the model fills nothing new, the likeliest empty decoded voxels stand in."""
+    grid = VoxelGrid(CropBox((0.0, 0.0, 0.0), (1.0, 1.0, 0.5)), (4, 4, 2))
+    cloud = torch.tensor([[0.02, 0.03, 0.01], [0.2, 0.1, 0.24], [0.9, 0.8, 0.4], [0.95, 0.99, 0.3]])
+    future = torch.zeros(4, 4, 2, dtype=torch.bool)
+    future[0, 0, 0] = future[1, 0, 0] = True
+    imaginer = Imaginer(KnownFuture(future), grid, num_points=3, output="change")
+    np.testing.assert_allclose(imaginer(cloud, torch.zeros(1, 4)), [[0.375, 0.125, 0.125]] * 3, atol=1e-6)
+    # Nothing new: every decoded voxel holds logit -10 except A (kept, +10, but occupied now).
+    still = torch.zeros(4, 4, 2, dtype=torch.bool)
+    still[0, 0, 0] = True
+    imagined = Imaginer(KnownFuture(still), grid, num_points=5, output="change")(cloud, torch.zeros(1, 4))
+    assert imagined.shape == (5, 3)
+    occupied_now = {(0, 0, 0), (3, 3, 1)}
+    voxels = {tuple(index) for index in grid.indices(torch.as_tensor(imagined))[0].tolist()}
+    assert voxels and not voxels & occupied_now  # only voxels empty now, all near the present
+    with pytest.raises(ValueError, match="output must be one of"):
+        Imaginer(KnownFuture(still), grid, num_points=5, output="past")
+
+
 @pytest.mark.parametrize("mode, encoder, skip", [
     ("triplane", "point-scatter", True), ("xy", "point-scatter", True), ("triplane", "volume-conv", False),
     ("volume", "volume-conv", True),

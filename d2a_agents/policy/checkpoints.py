@@ -15,7 +15,7 @@ from typing import Any
 from collectors.dataset import Normalizer
 from collectors.evaluation import EvaluationResult, evaluate
 from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint
-from d2a_agents.policy.agent import Policy, PolicyConfig, TorchRLPolicy, normalizer_keys
+from d2a_agents.policy.agent import VARIANTS, Policy, PolicyConfig, TorchRLPolicy, normalizer_keys
 from d2a_envs.tasks import get_task
 
 CHECKPOINT_KIND = "policy"
@@ -72,6 +72,9 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
             raise CheckpointError(f"the policy's world model {world_model} has changed since the policy was trained")
         kwargs["world_model"] = str(Path(world_model).resolve())
         kwargs["imagined_points"] = payload["policy_config"]["num_points"]  # what the policy reads
+        imagined = VARIANTS[payload["policy_config"]["algo"]].imagined
+        if imagined != "future":
+            kwargs["imagined_output"] = imagined
     return kwargs
 
 

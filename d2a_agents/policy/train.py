@@ -334,7 +334,8 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     if uses_imagination(config.policy.algo) and config.world_model is None:
         raise ValueError(f"algo {config.policy.algo!r} imagines the future: pass --world-model")
     # The imagined cloud at the policy's point count, as the env serves it when acting (eval_env_kwargs).
-    imaginer = (Imaginer.from_checkpoint(config.world_model, num_points=config.policy.num_points)
+    imaginer = (Imaginer.from_checkpoint(config.world_model, num_points=config.policy.num_points,
+                                         output=config.policy.variant.imagined)
                 if uses_imagination(config.policy.algo) else None)
     if imaginer is not None and not set(dataset.metadata.tasks) <= set(imaginer_tasks(config.world_model)):
         raise CheckpointError(f"world model {config.world_model} was not trained on every task of {config.data}")

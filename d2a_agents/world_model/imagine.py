@@ -16,6 +16,10 @@ from d2a_envs.sampling import CropBox, sample_to_size
 
 CHECKPOINT_KIND = "world_model"
 IMAGINED_KEY = "imagined_point_cloud"  # the observation an imagining env adds
+# What the imagined cloud holds: "future", the cloud H steps ahead (the paper's P_{t+H});
+# "change", the voxels the model fills that are empty now (where something will be that is
+# not there yet), so that all of a small cloud lies on what moves.
+IMAGINED_OUTPUTS = ("future", "change")
 # The 26 voxels around a voxel (Chebyshev distance 1).
 NEIGHBOUR_OFFSETS = torch.stack(torch.meshgrid(*[torch.arange(-1, 2)] * 3, indexing="ij"), dim=-1).reshape(-1, 3)
 NEIGHBOUR_OFFSETS = NEIGHBOUR_OFFSETS[NEIGHBOUR_OFFSETS.abs().sum(dim=1) > 0]
@@ -99,6 +103,10 @@ class Imaginer:
     centres) to 1.0-1.4 cm, level with copying the present; set it to False for the plain
     voxel-centre decoding of the paper.
 
+    With ``output="change"`` the cloud holds only the centres of the voxels the model fills
+    that are empty now; where it fills none, the empty decoded voxels it finds most likely
+    (as many as the cloud's points), so the cloud always points where motion is likeliest.
+
     Example:
         >>> imaginer = Imaginer.from_checkpoint("runs/hammer/wm.pt")
         >>> imagined = imaginer(cloud, past_actions)     # (N, 3) float32, world frame
@@ -107,9 +115,13 @@ class Imaginer:
     def __init__(
         self, model: TriplaneWorldModel, grid: VoxelGrid, num_points: int, band: int = 4, threshold: float = 0.5,
         seed: int = 0, keep_observed_points: bool = True, tasks: tuple[str, ...] = (), grow: bool = True,
+        output: str = "future",
     ) -> None:
         if band < 1:
             raise ValueError(f"band must be at least 1 voxel, not {band}")
+        if output not in IMAGINED_OUTPUTS:
+            raise ValueError(f"output must be one of {IMAGINED_OUTPUTS}, not {output!r}")
+        self.output = output
         self.model = model.eval()
         self.tasks = tuple(tasks)  # the tasks it was trained on (empty: unknown)
         self.grid = grid
@@ -186,9 +198,20 @@ class Imaginer:
         actions = torch.as_tensor(np.asarray(past_actions), dtype=torch.float32).unsqueeze(0)
         current = self.grid.voxelize(cloud).unsqueeze(0)
         candidates, logits = self.decoded_voxels(current, self.model.encode(current, actions))
+        if self.output == "change":
+            return self._change(candidates, logits, current[0])
         occupied = candidates[logits > self.logit_threshold]
         if len(occupied) == 0:
             keep = min(int(current.sum()), len(candidates))
             occupied = candidates[logits.topk(keep).indices]
         points = occupancy_to_points(self.grid, occupied, cloud, current[0], self.keep_observed_points)
         return sample_to_size(points.numpy(), self.num_points, self.rng).astype(np.float32)
+
+    def _change(self, candidates: torch.Tensor, logits: torch.Tensor, current: torch.Tensor) -> np.ndarray:
+        """Centres of the decoded voxels empty now that the model fills (else its likeliest ones)."""
+        empty = ~current[tuple(candidates.T)]
+        candidates, logits = candidates[empty], logits[empty]
+        filled = candidates[logits > self.logit_threshold]
+        if len(filled) == 0:
+            filled = candidates[logits.topk(min(self.num_points, len(candidates))).indices]
+        return sample_to_size(self.grid.centres(filled).numpy(), self.num_points, self.rng).astype(np.float32)

@@ -37,20 +37,23 @@ __all__ = ["IMAGINED_KEY", "ImaginationTransform", "ImaginationWrapper", "check_
 _BOX_TOLERANCE = 1e-5
 
 
-def load_imaginer(world_model: Imaginer | str | os.PathLike, num_points: int, seed: int = 0) -> Imaginer:
+def load_imaginer(
+    world_model: Imaginer | str | os.PathLike, num_points: int, seed: int = 0, output: str = "future"
+) -> Imaginer:
     """An :class:`~d2a_agents.world_model.imagine.Imaginer` of ``num_points`` points owned by the caller.
 
     A checkpoint path is loaded (``CheckpointError`` for a missing, foreign or non-world-model
     file); an ``Imaginer`` is shallow-copied (the network is shared, read-only) so that its
-    point count and generator can be set without touching the caller's object.
+    point count, ``output`` and generator can be set without touching the caller's object.
     """
     if isinstance(world_model, Imaginer):
         imaginer = copy.copy(world_model)
         imaginer.num_points = int(num_points)
+        imaginer.output = output
         imaginer.rng = np.random.default_rng(seed)
         return imaginer
     if isinstance(world_model, (str, os.PathLike)):
-        return Imaginer.from_checkpoint(Path(world_model), num_points=int(num_points), seed=seed)
+        return Imaginer.from_checkpoint(Path(world_model), num_points=int(num_points), seed=seed, output=output)
     raise TypeError(f"world_model must be an Imaginer or a checkpoint path, got {type(world_model).__name__}")
 
 
@@ -115,6 +118,8 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         seed: seed of the fill generator until a seeded reset.
         task: the env's task, checked against the tasks the world model was trained on.
         num_points: points of the imagined cloud; default: those of the env's cloud.
+        output: what the imagined cloud holds, "future" or "change" (see
+            :class:`~d2a_agents.world_model.imagine.Imaginer`).
 
     Example:
         >>> env = gym.make("D2A-MetaWorld-Hammer-v0", world_model="runs/hammer/wm.pt")
@@ -125,10 +130,10 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def __init__(
         self, env: gym.Env, world_model: Imaginer | str | os.PathLike, seed: int = 0, task: str | None = None,
-        num_points: int | None = None,
+        num_points: int | None = None, output: str = "future",
     ) -> None:
         gym.utils.RecordConstructorArgs.__init__(self, world_model=world_model, seed=seed, task=task,
-                                                 num_points=num_points)
+                                                 num_points=num_points, output=output)
         gym.Wrapper.__init__(self, env)
         space = env.observation_space
         if not isinstance(space, spaces.Dict) or "point_cloud" not in space.spaces:
@@ -144,7 +149,7 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         num_points = int(cloud_space.shape[0] if num_points is None else num_points)
         if num_points < 1:
             raise ValueError(f"the imagined cloud needs at least 1 point, not {num_points}")
-        self.imaginer = load_imaginer(world_model, num_points, seed)
+        self.imaginer = load_imaginer(world_model, num_points, seed, output)
         check_world_model(self.imaginer, crop_box, env.action_space.shape[0], _describe(world_model))
         if task is not None and self.imaginer.tasks and task not in self.imaginer.tasks:
             raise CheckpointError(f"{_describe(world_model)} was trained on {list(self.imaginer.tasks)}, "
@@ -202,6 +207,7 @@ class ImaginationTransform(Transform):
         num_points: points of the imagined cloud; default: those of the current cloud.
         crop_box: the env's crop box, when the cloud spec does not carry it.
         seed: seed of the fill generator.
+        output: what the imagined cloud holds, "future" or "change".
 
     Example:
         >>> base = GymWrapper(gym.make("D2A-MetaWorld-Hammer-v0"))
@@ -219,10 +225,11 @@ class ImaginationTransform(Transform):
         num_points: int | None = None,
         crop_box: CropBox | None = None,
         seed: int = 0,
+        output: str = "future",
     ) -> None:
         super().__init__(in_keys=[cloud_key, action_key], out_keys=[out_key])
         if isinstance(world_model, (str, os.PathLike)):  # load once, fail early on a bad file
-            world_model = Imaginer.from_checkpoint(Path(world_model), num_points=num_points)
+            world_model = Imaginer.from_checkpoint(Path(world_model), num_points=num_points, output=output)
         elif not isinstance(world_model, Imaginer):
             raise TypeError(f"world_model must be an Imaginer or a checkpoint path, got {type(world_model).__name__}")
         self._source = world_model
@@ -230,6 +237,7 @@ class ImaginationTransform(Transform):
         self._num_points = num_points
         self._crop_box = crop_box
         self._seed = seed
+        self._output = output
         self.history = torch.zeros(world_model.config.action_history, world_model.config.action_dim)
 
     @property
@@ -261,7 +269,7 @@ class ImaginationTransform(Transform):
         action_spec = self.parent.full_action_spec[self.action_key]
         num_points = self._num_points or int(cloud_spec.shape[-2])
         if self.imaginer is None or self.imaginer.num_points != num_points:
-            self.imaginer = load_imaginer(self._source, num_points, self._seed)
+            self.imaginer = load_imaginer(self._source, num_points, self._seed, self._output)
         check_world_model(self.imaginer, box, int(action_spec.shape[-1]), "the world model")
         grid_box = self.imaginer.grid.box
         shape = torch.Size([num_points, 3])
