@@ -89,8 +89,10 @@ def test_the_imagined_cloud_can_be_smaller_than_the_env_cloud(checkpoint: Path) 
     assert observation[IMAGINED_KEY].shape == (16, 3) and observation["point_cloud"].shape[0] == NUM_POINTS
     assert env.observation_space.contains(observation)
     env.close()
-    with pytest.raises(ValueError, match="needs a world_model"):
+    with pytest.raises(ValueError, match="need a world_model"):
         gym.make(ENV_ID, imagined_points=16, **ENV_KWARGS)
+    with pytest.raises(ValueError, match="need a world_model"):
+        gym.make(ENV_ID, imagined_output="change", **ENV_KWARGS)
 
 
 def test_action_history_is_reset_and_holds_the_last_k_actions_in_order(checkpoint: Path) -> None:
