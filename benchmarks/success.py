@@ -337,9 +337,10 @@ def run_grid(config: SuccessBenchConfig, grid: list[tuple[str, str, int]]) -> li
 
 
 def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
-    """Every (task, algo, seed) cell of the config; prints the table of the cells that finished."""
-    cells = run_grid(config, [(task, algo, seed) for task in config.tasks for algo in config.algos
-                              for seed in config.seeds])
+    """Every (task, algo, seed) cell of the config, task by task and in a task seed by seed (the
+    variants of one seed side by side first); prints the table of the cells that finished."""
+    cells = run_grid(config, [(task, algo, seed) for task in config.tasks for seed in config.seeds
+                              for algo in config.algos])
     if not cells:
         return cells
     print()

@@ -306,7 +306,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
         workdir=args.workdir, workers=args.workers, env_kwargs=env_kwargs or None, world_model=world_model,
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
-        eval_layouts=args.eval_layouts, demos=args.demos,
+        eval_layouts=args.eval_layouts, demos=args.demos, cells=args.cells,
     ))
 
 
@@ -572,6 +572,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench_success.add_argument("--wm-steps", type=POSITIVE, default=None, help="world-model training steps")
     bench_success.add_argument("--workdir", default=None,
                                help="data, models and finished cells; a rerun resumes")
+    bench_success.add_argument("--cells", default=None,
+                               help="where the finished cells' files go (default: WORKDIR/cells), e.g. a directory "
+                                    "kept under version control; a rerun skips the cells found there")
     bench_success.add_argument("--threads", type=POSITIVE, default=None,
                                help="torch threads per cell; on Ray, the CPUs each cell asks for (default 1)")
     _add_ray_option(bench_success)
