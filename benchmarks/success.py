@@ -80,7 +80,11 @@ class SuccessBenchConfig:
     tasks: tuple[str, ...] = ("hammer", "lever-pull", "assembly", "push", "stick-pull")
     algos: tuple[str, ...] = ("d2a", "d2a-no-cfg", "mp1", "dp3", "mp1-state")
     seeds: tuple[int, ...] = (0, 1, 2)
-    demos: int = DEFAULT_DEMOS  # per cell: the first ``demos`` of one collection per task (grown as needed)
+    demos: int = DEFAULT_DEMOS  # per cell: the first ``demos`` of one collection per task
+    # Demonstrations collected per task (default: demos). A workdir whose cells train on several
+    # counts collects the largest once, so that 1 of 2 of 5 ... are nested and each world model
+    # trains on its policies' demonstrations and validates on the ones after them.
+    pool: int | None = None
     workdir: str = "outputs/bench_success"
     cells: str | None = None  # directory of the finished cells' files (default: <workdir>/cells)
     policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget of every variant
@@ -98,6 +102,10 @@ class SuccessBenchConfig:
     # gym.make options of the demonstrations (and so of every evaluation), e.g. the dense clouds
     # {"image_size": 256, "num_points": 4096, "backend": "render"} that the 128x128x32 world model reads.
     env_kwargs: dict[str, object] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.pool is not None and self.pool < self.demos:
+            raise ValueError(f"a pool of {self.pool} demonstrations cannot give cells {self.demos}")
 
 
 PRESETS: dict[str, SuccessBenchConfig] = {
@@ -160,7 +168,8 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     (``collect`` refuses a data set collected with other env settings)."""
     data = Path(config.workdir) / "data" / task
     _when_free(lambda: collect(CollectConfig(
-        tasks=(task,), out=str(data), episodes=config.demos, seed=0, append=True, env_kwargs=config.env_kwargs,
+        tasks=(task,), out=str(data), episodes=config.pool or config.demos, seed=0, append=True,
+        env_kwargs=config.env_kwargs,
         progress=config.ray_address is None, ray_address=config.ray_address,
     )), f"{task} demonstrations")
     return data

@@ -306,7 +306,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
         workdir=args.workdir, workers=args.workers, env_kwargs=env_kwargs or None, world_model=world_model,
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
-        eval_layouts=args.eval_layouts, demos=args.demos, cells=args.cells,
+        eval_layouts=args.eval_layouts, demos=args.demos, pool=args.pool, cells=args.cells,
     ))
 
 
@@ -556,7 +556,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench_success.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="default: the preset's")
     bench_success.add_argument("--demos", type=POSITIVE, default=None,
                                help="demonstrations per cell (default 10): the first N of one collection per task, "
-                                    "grown as needed, so cells of 1, 2, 5, ... train on nested sets")
+                                    "so cells of 1, 2, 5, ... in one workdir train on nested sets")
+    bench_success.add_argument("--pool", type=POSITIVE, default=None,
+                               help="demonstrations collected per task (default: --demos); a workdir with cells of "
+                                    "several counts collects the largest, so world models validate on the rest")
     bench_success.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
     bench_success.add_argument("--evaluations", type=POSITIVE, default=None,
                                help="periodic evaluations during training, the last at the final step; the paper "

@@ -11,6 +11,7 @@ import benchmarks.success as bench
 from benchmarks.success import Cell, SuccessBenchConfig, format_table
 from collectors.collect import CollectConfig, collect
 from collectors.storage import DatasetError, DemoDataset
+from d2a_agents.checkpoint import load_checkpoint
 from d2a_agents.policy.agent import PolicyConfig
 from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset
@@ -53,6 +54,13 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
     stored = json.loads(bench.cell_path(config, "reach", "mp1", 0).read_text())
     assert stored["periodic"] == cell.periodic
     assert (tmp_path / "success.png").stat().st_size > 0
+    # A cell on the first demonstration of the pool of two: named apart, trained on episode 0 only.
+    (one,) = bench.run(dataclasses.replace(config, demos=1, pool=2))
+    run = tmp_path / "runs" / bench._cell_name(dataclasses.replace(config, demos=1), "reach", "mp1", 0)
+    assert "_e2_d1_" in run.name and len(DemoDataset.open(data).metadata.episodes) == 2
+    assert load_checkpoint(run / "policy.pt", "policy")["run_config"]["demos"] == 1
+    with pytest.raises(ValueError, match="cannot give cells 2"):
+        dataclasses.replace(config, pool=1)
 
     def no_training(*args, **kwargs):
         raise AssertionError("a finished cell was trained again")

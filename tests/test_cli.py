@@ -258,8 +258,8 @@ def test_demos_reach_the_trainers_and_the_bench(captured):
     assert captured["config"].demos == 5
     main(["train-wm", "--data", "d", "--out", "o.pt", "--demos", "2"])
     assert captured["config"].demos == 2
-    main(["bench", "success", "--demos", "1", "--cells", "kept/cells"])
-    assert (captured["config"].demos, captured["config"].cells) == (1, "kept/cells")
+    main(["bench", "success", "--demos", "1", "--pool", "20", "--cells", "kept/cells"])
+    assert (captured["config"].demos, captured["config"].pool, captured["config"].cells) == (1, 20, "kept/cells")
     main(["train-policy", "--data", "d", "--out", "o"])
     assert captured["config"].demos is None  # every episode
 
