@@ -128,7 +128,8 @@ class Cell:
     evaluation (the extra one when ``final_episodes`` > 0, else the last periodic one).
     ``train_seconds``: wall time of the training call that finished the run (shorter when
     it resumed an interrupted run), periodic evaluations included; ``final_seconds``: the
-    final evaluation's (``None`` in cells stored before it was recorded).
+    final evaluation's (``None`` in cells stored before it was recorded). ``demos``: the
+    demonstrations it trained on (cells stored before it was recorded trained on 10).
     """
 
     task: str
@@ -139,6 +140,7 @@ class Cell:
     final_episodes: int
     train_seconds: float
     final_seconds: float | None = None
+    demos: int = DEFAULT_DEMOS
 
     @property
     def paper(self) -> float:
@@ -224,7 +226,7 @@ def run_cell(
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes
     return Cell(task, algo, seed, [point.success_rate for point in history], wins, episodes, train_seconds,
-                time.perf_counter() - started - train_seconds)
+                time.perf_counter() - started - train_seconds, config.demos)
 
 
 def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> str:

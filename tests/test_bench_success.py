@@ -56,6 +56,7 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
     assert (tmp_path / "success.png").stat().st_size > 0
     # A cell on the first demonstration of the pool of two: named apart, trained on episode 0 only.
     (one,) = bench.run(dataclasses.replace(config, demos=1, pool=2))
+    assert (one.demos, cell.demos) == (1, 2)
     run = tmp_path / "runs" / bench._cell_name(dataclasses.replace(config, demos=1), "reach", "mp1", 0)
     assert "_e2_d1_" in run.name and len(DemoDataset.open(data).metadata.episodes) == 2
     assert load_checkpoint(run / "policy.pt", "policy")["run_config"]["demos"] == 1
