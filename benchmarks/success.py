@@ -39,8 +39,10 @@ perception costs.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import hashlib
+import io
 import json
 import statistics
 import time
@@ -358,6 +360,36 @@ def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
     print(format_table(cells, config))
     print(f"wrote {plot_success(cells, Path(config.workdir) / 'success.png')}")
     return cells
+
+
+def cells_csv(cells: list[Cell], columns: dict[str, Callable[[Cell], object]] | None = None) -> str:
+    """One CSV row per cell: what it ran, both protocols, its final outcomes and times, then the
+    extra ``columns`` (name: value of a cell)."""
+    columns = columns or {}
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["task", "algo", "seed", "demos", "paper", "honest", "final_wins", "final_episodes",
+                     "train_seconds", "final_seconds", *columns])
+    for cell in cells:
+        writer.writerow([cell.task, cell.algo, cell.seed, cell.demos, f"{cell.paper:.4f}", f"{cell.honest:.4f}",
+                         cell.final_wins, cell.final_episodes, f"{cell.train_seconds:.0f}",
+                         "" if cell.final_seconds is None else f"{cell.final_seconds:.0f}",
+                         *(value(cell) for value in columns.values())])
+    return out.getvalue()
+
+
+def cpu_hours(cells: list[Cell]) -> float:
+    """Training, periodic and final evaluations of the cells, in hours of one thread each."""
+    return sum(cell.train_seconds + (cell.final_seconds or 0.0) for cell in cells) / 3600
+
+
+def progress_line(cells: list[Cell], total: int) -> str:
+    """How many of ``total`` cells are finished, their CPU time and the rest's at their mean rate."""
+    hours = cpu_hours(cells)
+    rest = total - len(cells)
+    estimate = (f"; the other {rest} at their mean rate: about {hours / len(cells) * rest:.1f} CPU-hours"
+                if cells and rest else "")
+    return f"{len(cells)} of {total} cells finished, {hours:.1f} CPU-hours (one thread per cell){estimate}"
 
 
 @dataclass(frozen=True)

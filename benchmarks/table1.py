@@ -22,15 +22,22 @@ Example::
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
 import d2a_envs
-from benchmarks.success import Cell, SuccessBenchConfig, cell_path, read_cell, run_grid, summarize
+from benchmarks.success import (
+    Cell,
+    SuccessBenchConfig,
+    cell_path,
+    cells_csv,
+    progress_line,
+    read_cell,
+    run_grid,
+    summarize,
+)
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import honest_protocol
 from d2a_agents.policy.train import POLICY_PRESETS
@@ -193,17 +200,9 @@ def _env_text(env_kwargs: dict[str, object]) -> str:
 
 
 def task_csv(cells: list[Cell]) -> str:
-    """One row per cell: task, group, method, seed, both protocols and the cell's times."""
+    """One row per cell, with its task's difficulty group."""
     group_of = {task: group for group in GROUPS for task in group_tasks(group)}
-    out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(["task", "group", "algo", "seed", "paper", "honest", "final_wins", "final_episodes",
-                     "train_seconds", "final_seconds"])
-    for cell in cells:
-        writer.writerow([cell.task, group_of.get(cell.task, "-"), cell.algo, cell.seed, f"{cell.paper:.4f}",
-                         f"{cell.honest:.4f}", cell.final_wins, cell.final_episodes, f"{cell.train_seconds:.0f}",
-                         "" if cell.final_seconds is None else f"{cell.final_seconds:.0f}"])
-    return out.getvalue()
+    return cells_csv(cells, {"group": lambda cell: group_of.get(cell.task, "-")})
 
 
 def task_table(cells: list[Cell]) -> str:
@@ -239,11 +238,6 @@ def plot(cells: list[Cell], path: str | Path) -> Path:
                                          "interval; dots: seeds); triangles: the paper's value for the method")
 
 
-def cpu_hours(cells: list[Cell]) -> float:
-    """Training, periodic and final evaluations of the cells, in hours of one thread."""
-    return sum(cell.train_seconds + (cell.final_seconds or 0.0) for cell in cells) / 3600
-
-
 def write_report(cells: list[Cell], config: Table1Config) -> str:
     """Write table1.md, tasks.csv, tasks.md and table1.png to ``results``; returns table1.md's text."""
     results = Path(config.results)
@@ -268,9 +262,5 @@ def run(config: Table1Config = Table1Config(), report_only: bool = False) -> lis
     grid = plan(config)
     cells = finished_cells(config) if report_only else run_grid(config.cell_config(), grid)
     print(write_report(cells, config))
-    hours = cpu_hours(cells)
-    print(f"\n{len(cells)} of {len(grid)} cells finished, {hours:.1f} CPU-hours (one thread per cell)"
-          + (f"; the other {len(grid) - len(cells)} at their mean rate: about "
-             f"{hours / len(cells) * (len(grid) - len(cells)):.1f} CPU-hours" if cells and len(cells) < len(grid)
-             else ""))
+    print("\n" + progress_line(cells, len(grid)))
     return cells

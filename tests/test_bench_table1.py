@@ -64,8 +64,9 @@ def test_report_gives_group_means_over_complete_seeds():
 def test_task_csv_has_one_row_per_cell():
     cells = [_cell("push", "dp3", 1, 37, periodic=[0.2, 0.5, 0.4])]
     (row,) = csv.DictReader(io.StringIO(task_csv(cells)))
-    assert row == {"task": "push", "group": "hard", "algo": "dp3", "seed": "1", "paper": "0.3667", "honest": "0.3700",
-                   "final_wins": "37", "final_episodes": "100", "train_seconds": "600", "final_seconds": "300"}
+    assert row == {"task": "push", "algo": "dp3", "seed": "1", "demos": "10", "paper": "0.3667", "honest": "0.3700",
+                   "final_wins": "37", "final_episodes": "100", "train_seconds": "600", "final_seconds": "300",
+                   "group": "hard"}
 
 
 def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
