@@ -82,6 +82,21 @@ def _add_eval_layouts_option(parser: argparse.ArgumentParser) -> None:
                              "select over layout draws)")
 
 
+def _add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: str) -> None:
+    """The options every grid bench (table1, table4) shares."""
+    parser.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="default: 0 1 2")
+    parser.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
+    parser.add_argument("--evaluations", type=POSITIVE, default=None, help="periodic evaluations (default 5)")
+    _add_eval_layouts_option(parser)
+    parser.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
+    parser.add_argument("--workdir", default=None, help=f"data, world models, checkpoints (default {workdir})")
+    parser.add_argument("--results", default=None,
+                        help=f"finished cells and the report (default {results}); a rerun skips its cells")
+    parser.add_argument("--threads", type=POSITIVE, default=None, help="torch threads per cell (default 1)")
+    parser.add_argument("--report", action="store_true", help="only write the report of the finished cells")
+    _add_ray_option(parser)
+
+
 def _replace_given(instance: Any, **changes: object) -> Any:
     """``dataclasses.replace`` with the options the user gave (``None``: keep the default)."""
     return dataclasses.replace(instance, **{k: v for k, v in changes.items() if v is not None})
@@ -310,16 +325,30 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
     ))
 
 
+def _grid_cells(base: Any, args: argparse.Namespace) -> Any:
+    """A grid bench's per-cell settings (``SuccessBenchConfig``) with the options given."""
+    return _replace_given(base, workdir=args.workdir, threads=args.threads, ray_address=args.ray,
+                          evaluations=args.evaluations, eval_layouts=args.eval_layouts, workers=args.workers,
+                          policy=_replace_given(base.policy, steps=args.steps))
+
+
 def cmd_bench_table1(args: argparse.Namespace) -> None:
     from benchmarks.table1 import Table1Config, run
 
     base = Table1Config()
-    bench = _replace_given(base.bench, workdir=args.workdir, threads=args.threads, ray_address=args.ray,
-                           evaluations=args.evaluations, eval_layouts=args.eval_layouts, workers=args.workers,
-                           policy=_replace_given(base.bench.policy, steps=args.steps))
     run(_replace_given(base, groups=tuple(args.group) if args.group else None,
                        algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
-                       results=args.results, bench=bench), report_only=args.report)
+                       results=args.results, bench=_grid_cells(base.bench, args)), report_only=args.report)
+
+
+def cmd_bench_table4(args: argparse.Namespace) -> None:
+    from benchmarks.table4 import Table4Config, run
+
+    base = Table4Config()
+    run(_replace_given(base, tasks=tuple(args.task) if args.task else None,
+                       demos=tuple(args.demos) if args.demos else None,
+                       algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
+                       results=args.results, bench=_grid_cells(base.bench, args)), report_only=args.report)
 
 
 def cmd_bench_ray(args: argparse.Namespace) -> None:
@@ -588,19 +617,19 @@ def build_parser() -> argparse.ArgumentParser:
     bench_table1.add_argument("--group", action="append", choices=("very_hard", "hard", "medium", "easy"),
                               default=None, help="repeat for several (default: very_hard hard medium easy, in order)")
     bench_table1.add_argument("--algo", action="append", choices=ALGOS, default=None, help="default: mp1 dp3")
-    bench_table1.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="default: 0 1 2")
-    bench_table1.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
-    bench_table1.add_argument("--evaluations", type=POSITIVE, default=None, help="periodic evaluations (default 5)")
-    _add_eval_layouts_option(bench_table1)
-    bench_table1.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
-    bench_table1.add_argument("--workdir", default=None,
-                              help="data, world models, checkpoints (default outputs/table1)")
-    bench_table1.add_argument("--results", default=None,
-                              help="finished cells and the report (default docs/table1); a rerun skips its cells")
-    bench_table1.add_argument("--threads", type=POSITIVE, default=None, help="torch threads per cell (default 1)")
-    bench_table1.add_argument("--report", action="store_true", help="only write the report of the finished cells")
-    _add_ray_option(bench_table1)
+    _add_grid_options(bench_table1, "docs/table1", "outputs/table1")
     bench_table1.set_defaults(func=cmd_bench_table1)
+
+    bench_table4 = bench.add_parser("table4", help="the paper's Table IV: success against 1-20 demonstrations on "
+                                                   "its four tasks, resumable; the paper's layout, CSV, plot")
+    bench_table4.add_argument("--task", action="append", default=None,
+                              help="default: lever-pull assembly push stick-pull")
+    bench_table4.add_argument("--demos", type=POSITIVE, action="append", default=None,
+                              help="demonstration count; repeat (default 5 1 2 10 20, in order)")
+    bench_table4.add_argument("--algo", action="append", choices=ALGOS, default=None,
+                              help="default: mp1 d2a d2a-present")
+    _add_grid_options(bench_table4, "docs/table4", "outputs/table4")
+    bench_table4.set_defaults(func=cmd_bench_table4)
 
     bench_ray = bench.add_parser("ray", help="the same small bench success grid on 1 and 2 Ray CPUs: wall time")
     bench_ray.add_argument("--task", default=None, help="default: reach")

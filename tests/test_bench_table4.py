@@ -1,0 +1,76 @@
+"""The Table IV bench: its order, its paper-layout figures against hand computations, its files."""
+
+from __future__ import annotations
+
+import pytest
+
+import benchmarks.success as success
+from benchmarks.success import Cell
+from benchmarks.table4 import Table4Config, plan, report, run
+from d2a.cli import main
+
+
+def _cell(task: str, algo: str, seed: int, demos: int, wins: int, periodic: list[float] | None = None) -> Cell:
+    return Cell(task, algo, seed, periodic or [wins / 100], wins, 100, train_seconds=600.0, final_seconds=300.0,
+                demos=demos)
+
+
+def _row(text: str, protocol: str, demos: int) -> list[str]:
+    section = text.split(f"{protocol.capitalize()} protocol:")[1]
+    line = next(line for line in section.splitlines() if line.startswith(f"| {demos} |"))
+    return [entry.strip() for entry in line.split("|")[2:-1]]
+
+
+def test_plan_runs_count_by_count_five_first():
+    config = Table4Config(algos=("mp1", "d2a"), seeds=(0, 1))
+    cells = plan(config)
+    assert len(cells) == 5 * 4 * 2 * 2
+    assert [demos for demos, *_ in cells[::16]] == [5, 1, 2, 10, 20]
+    assert cells[:4] == [(5, "lever-pull", "mp1", 0), (5, "lever-pull", "d2a", 0), (5, "lever-pull", "mp1", 1),
+                         (5, "lever-pull", "d2a", 1)]
+
+
+def test_report_in_the_papers_layout_keeps_counts_apart():
+    cells = [_cell("push", "mp1", 0, 5, 30, periodic=[0.1, 0.6]), _cell("push", "mp1", 1, 5, 40, periodic=[0.2]),
+             _cell("push", "d2a", 0, 5, 50), _cell("push", "mp1", 0, 10, 90)]
+    text = report(cells, Table4Config(algos=("mp1", "d2a", "d2a-present")))
+    lever, assembly, push, stick = _row(text, "honest", 5)
+    # Honest: mp1 pools 70 wins of 200 episodes; d2a one seed; d2a-present none; 2 seeds at most.
+    assert push == "35 / 50 / - (2) [paper 32 / 50]"
+    assert lever == "- [paper 19 / 30]"
+    # Paper protocol: mp1 seeds average (0.35 + 0.2) / 2 = 27.5 (rounded to 28).
+    assert _row(text, "paper", 5)[2] == "28 / 50 / - (2) [paper 32 / 50]"
+    assert _row(text, "honest", 10)[2] == "90 / - / - (1) [paper 74 / 85]"
+    assert _row(text, "honest", 1)[2] == "- [paper 9 / 17]"
+
+
+def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
+    config = Table4Config(tasks=("push",), demos=(5,), algos=("mp1",), seeds=(0, 1), results=str(tmp_path))
+    success._store(config.cell_config(5), _cell("push", "mp1", 0, 5, 30))
+    assert success.cell_path(config.cell_config(5), "push", "mp1", 0).stem.endswith("_d5")
+    run(config, report_only=True)
+    assert "1 of 2 cells finished, 0.2 CPU-hours" in capsys.readouterr().out
+    assert (tmp_path / "table4.png").stat().st_size > 0
+    assert "| 5 | push | `mp1` | 30 |" in (tmp_path / "tasks.md").read_text()
+    assert len((tmp_path / "cells.csv").read_text().splitlines()) == 2
+
+
+def test_counts_beyond_the_pool_are_refused():
+    with pytest.raises(ValueError, match="1..pool"):
+        Table4Config(demos=(5, 25))
+
+
+def test_cli_options(monkeypatch):
+    import benchmarks.table4
+
+    seen = {}
+    monkeypatch.setattr(benchmarks.table4, "run", lambda config, report_only: seen.update(config=config,
+                                                                                           report=report_only))
+    main(["bench", "table4"])
+    assert seen == {"config": Table4Config(), "report": False}
+    main(["bench", "table4", "--task", "push", "--demos", "5", "--demos", "1", "--algo", "d2a-change", "--seed", "1",
+          "--evaluations", "1", "--report"])
+    config = seen["config"]
+    assert (config.tasks, config.demos, config.algos, config.seeds) == (("push",), (5, 1), ("d2a-change",), (1,))
+    assert config.bench.evaluations == 1 and seen["report"]
+    assert (config.cell_config(1).demos, config.cell_config(1).pool) == (1, 20)
