@@ -16,7 +16,7 @@ def _cell(task: str, algo: str, seed: int, demos: int, wins: int, periodic: list
 
 
 def _row(text: str, protocol: str, demos: int) -> list[str]:
-    section = text.split(f"{protocol.capitalize()} protocol:")[1]
+    section = text.split(f"\n{protocol.capitalize()} protocol:\n")[1]
     line = next(line for line in section.splitlines() if line.startswith(f"| {demos} |"))
     return [entry.strip() for entry in line.split("|")[2:-1]]
 
