@@ -61,6 +61,11 @@ def _add_env_options(parser: argparse.ArgumentParser, several_tasks: bool = Fals
     else:
         parser.add_argument("--task", default="hammer", help="task name or env id (see `d2a tasks`)")
     parser.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    _add_cloud_options(parser)
+
+
+def _add_cloud_options(parser: argparse.ArgumentParser) -> None:
+    """The env options that shape its clouds (read back by ``_env_kwargs``)."""
     parser.add_argument("--backend", choices=("raycast", "render"), default=None)
     parser.add_argument("--cameras", default=None, help="comma-separated camera names, fused in the world frame")
     parser.add_argument("--image-size", type=POSITIVE, default=None)
@@ -153,6 +158,19 @@ def cmd_data_info(args: argparse.Namespace) -> None:
     from collectors.storage import DemoDataset, describe
 
     print(describe(DemoDataset.open(args.dir)))
+
+
+def cmd_data_import(args: argparse.Namespace) -> None:
+    from collectors.dp3_format import import_dp3
+    from collectors.storage import describe
+
+    print(describe(import_dp3(args.dp3, args.out, args.task, _env_kwargs(args) or None, overwrite=args.overwrite)))
+
+
+def cmd_data_export(args: argparse.Namespace) -> None:
+    from collectors.dp3_format import export_dp3
+
+    print(f"wrote {export_dp3(args.dir, args.dp3, overwrite=args.overwrite)}")
 
 
 def cmd_report(args: argparse.Namespace) -> None:
@@ -520,6 +538,19 @@ def build_parser() -> argparse.ArgumentParser:
     data_info = data.add_parser("info", help="episodes, lengths, success, point counts, size on disk")
     data_info.add_argument("dir")
     data_info.set_defaults(func=cmd_data_info)
+    data_import = data.add_parser("import", help="a DP3 / MP1 zarr (data/point_cloud, state, action, "
+                                                 "meta/episode_ends) into a data set here")
+    data_import.add_argument("--dp3", required=True, metavar="ZARR", help="the DP3 / MP1 zarr directory")
+    data_import.add_argument("--out", required=True, help="data set directory to create")
+    data_import.add_argument("--overwrite", action="store_true", help="replace an existing data set")
+    data_import.add_argument("--task", required=True, help="the task its episodes show (see `d2a tasks`)")
+    _add_cloud_options(data_import)  # the env options whose clouds match the file's
+    data_import.set_defaults(func=cmd_data_import)
+    data_export = data.add_parser("export", help="a data set here as a DP3 / MP1 zarr")
+    data_export.add_argument("dir", help="data set directory (d2a collect)")
+    data_export.add_argument("--dp3", required=True, metavar="ZARR", help="the zarr directory to write")
+    data_export.add_argument("--overwrite", action="store_true", help="replace an existing zarr")
+    data_export.set_defaults(func=cmd_data_export)
 
     bench_experts = bench.add_parser("experts", help="expert success per task (Meta-World, Adroit), parallel speed-up")
     bench_experts.add_argument("--task", action="append", default=None, help="default: all 50 Meta-World tasks")
