@@ -52,7 +52,8 @@ def test_import_reads_a_zarr_in_dp3s_layout(tmp_path):
     np.testing.assert_array_equal(frames["agent_pos"].numpy(), arrays["state"])
     np.testing.assert_array_equal(frames["state"].numpy(), arrays["full_state"])
     np.testing.assert_array_equal(frames["action"].numpy(), arrays["action"])
-    assert frames["episode"].tolist() == [0, 0, 0, 1, 1, 1, 1, 1] and frames["step"].tolist() == [0, 1, 2, 0, 1, 2, 3, 4]
+    assert frames["episode"].tolist() == [0, 0, 0, 1, 1, 1, 1, 1]
+    assert frames["step"].tolist() == [0, 1, 2, 0, 1, 2, 3, 4]
     assert not frames["success"].any()  # not stored in DP3's files
     # Without full_state, state repeats the proprioception; with given env options they are recorded.
     arrays = write_dp3_like(tmp_path / "lean.zarr", with_full_state=False)
