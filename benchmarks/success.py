@@ -110,6 +110,20 @@ class SuccessBenchConfig:
             raise ValueError(f"a pool of {self.pool} demonstrations cannot give cells {self.demos}")
 
 
+# The dense clouds that the 128x128x32 world model reads (and the Table IV benches used).
+DENSE_CLOUDS: dict[str, object] = {"num_points": 4096, "image_size": 256, "backend": "render"}
+
+
+def paper_table_cells(workdir: str) -> SuccessBenchConfig:
+    """The per-cell settings of the paper-table grids (``d2a bench table1`` / ``table4``): the
+    ``cpu`` policy preset on dense clouds, new layouts at each periodic evaluation as the
+    paper's runners, the 128x128x32 world model of 2000 steps for the imagining variants."""
+    from d2a_agents.world_model.triplane import CPU_PRESET
+
+    return SuccessBenchConfig(tasks=(), algos=(), seeds=(), workdir=workdir, env_kwargs=DENSE_CLOUDS,
+                              eval_layouts="fresh", world_model=CPU_PRESET, world_model_steps=2000)
+
+
 PRESETS: dict[str, SuccessBenchConfig] = {
     "cpu": SuccessBenchConfig(),
     # Section IV of the paper: 20 episodes every 200 of 3000 epochs (15 evaluations), 3 seeds.

@@ -33,6 +33,7 @@ from benchmarks.success import (
     SuccessBenchConfig,
     cell_path,
     cells_csv,
+    paper_table_cells,
     progress_line,
     read_cell,
     run_grid,
@@ -42,7 +43,6 @@ from collectors.atomic import atomic_write_text
 from collectors.evaluation import honest_protocol
 from d2a_agents.policy.train import POLICY_PRESETS
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
-from d2a_agents.world_model.triplane import CPU_PRESET
 
 GROUPS = ("very_hard", "hard", "medium", "easy")  # the grid's order: where the paper claims most first
 GROUP_TITLES = {"easy": "Easy", "medium": "Medium", "hard": "Hard", "very_hard": "Very Hard"}
@@ -63,8 +63,6 @@ PAPER_TABLE1: dict[str, dict[str, float]] = {
 ADROIT_PENDING = ("Adroit columns empty: no policy learns yet from the planning experts' demonstrations "
                   "(1-16 %); they join once Adroit demonstrations a policy can imitate exist.")
 
-# The dense clouds that the 128x128x32 world model reads (and the Table IV benches used).
-DENSE_CLOUDS: dict[str, object] = {"num_points": 4096, "image_size": 256, "backend": "render"}
 
 
 @dataclass(frozen=True)
@@ -76,10 +74,7 @@ class Table1Config:
     algos: tuple[str, ...] = ("mp1", "dp3")
     seeds: tuple[int, ...] = (0, 1, 2)
     results: str = "docs/table1"  # cells/ (kept), table1.md, tasks.csv, tasks.md, table1.png
-    bench: SuccessBenchConfig = SuccessBenchConfig(
-        tasks=(), algos=(), seeds=(), workdir="outputs/table1", env_kwargs=DENSE_CLOUDS, eval_layouts="fresh",
-        world_model=CPU_PRESET, world_model_steps=2000,
-    )  # new layouts at each periodic evaluation, as the paper's runners
+    bench: SuccessBenchConfig = paper_table_cells("outputs/table1")
 
     def __post_init__(self) -> None:
         unknown = set(self.groups) - set(GROUPS)

@@ -32,14 +32,14 @@ from benchmarks.success import (
     Summary,
     cell_path,
     cells_csv,
+    paper_table_cells,
     progress_line,
     read_cell,
     run_grid,
     summarize,
 )
-from benchmarks.table1 import DENSE_CLOUDS
 from collectors.atomic import atomic_write_text
-from d2a_agents.world_model.triplane import CPU_PRESET
+from d2a_agents.success_plot import save_figure
 
 TASKS = ("lever-pull", "assembly", "push", "stick-pull")
 DEMO_COUNTS = (5, 1, 2, 10, 20)  # the grid's order: 5 first, where the paper claims imagination helps most
@@ -65,10 +65,7 @@ class Table4Config:
     seeds: tuple[int, ...] = (0, 1, 2)
     pool: int = max(DEMO_COUNTS)  # demonstrations collected per task, whatever counts a run asks for
     results: str = "docs/table4"  # cells/ (kept), table4.md, cells.csv, tasks.md, table4.png
-    bench: SuccessBenchConfig = SuccessBenchConfig(
-        tasks=(), algos=(), seeds=(), workdir="outputs/table4", env_kwargs=DENSE_CLOUDS, eval_layouts="fresh",
-        world_model=CPU_PRESET, world_model_steps=2000,
-    )  # new layouts at each periodic evaluation, as the paper's runners
+    bench: SuccessBenchConfig = paper_table_cells("outputs/table4")
 
     def __post_init__(self) -> None:
         if not all(1 <= demos <= self.pool for demos in self.demos):
@@ -164,12 +161,7 @@ def plot(cells: list[Cell], config: Table4Config, path: str | Path) -> Path:
         ax.set_ylim(0, 102)
     axes[0][0].set_ylabel("success % (honest, 95 % interval)")
     axes[0][-1].legend(fontsize=7, loc="lower right")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def finished_cells(config: Table4Config) -> list[Cell]:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,13 @@ def plot_success_bars(bars: dict[str, dict[str, SuccessBar]], path: str | Path, 
     ax.set_ylabel("success %")
     ax.set_title(textwrap.fill(title, width=int(14 * width_inches)), fontsize=9)  # ~14 characters an inch at 9 pt
     ax.legend(fontsize=7, loc="lower left")
+    return save_figure(fig, path)
+
+
+def save_figure(fig: Any, path: str | Path) -> Path:
+    """Lay out, write (making its directory) and close a matplotlib figure; returns ``path``."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
