@@ -110,6 +110,8 @@ class GroupRow:
     high: float
     tasks_done: int  # tasks with at least one finished seed
     tasks: int
+    partial_paper: float  # means over every finished cell, complete seeds or not
+    partial_honest: float
 
     @property
     def seeds(self) -> int:
@@ -135,7 +137,8 @@ def group_rows(cells: list[Cell]) -> dict[tuple[str, str], GroupRow]:
             rows[group, algo] = GroupRow(
                 tuple(statistics.fmean(c.paper for c in per_task.values()) for per_task in complete),
                 tuple(statistics.fmean(c.honest for c in per_task.values()) for per_task in complete),
-                low, high, len({cell.task for cell in mine}), len(tasks))
+                low, high, len({cell.task for cell in mine}), len(tasks),
+                statistics.fmean(c.paper for c in mine), statistics.fmean(c.honest for c in mine))
     return rows
 
 
@@ -148,7 +151,8 @@ def _group_entry(row: GroupRow | None, protocol: str) -> str:
     if row is None:
         return "-"
     if not row.seeds:
-        return f"({row.tasks_done}/{row.tasks} tasks)"
+        partial = row.partial_paper if protocol == "paper" else row.partial_honest
+        return f"{100 * partial:.1f} over {row.tasks_done}/{row.tasks} tasks"
     values = row.paper_by_seed if protocol == "paper" else row.honest_by_seed
     interval = f" [{100 * row.low:.0f}-{100 * row.high:.0f}]" if protocol == "honest" else ""
     return f"{_mean_std(values)}{interval} ({row.seeds} seed{'s' if row.seeds > 1 else ''})"
@@ -158,7 +162,7 @@ def report(cells: list[Cell], config: Table1Config) -> str:
     """Markdown: the paper-format table (per group: mean ± std over complete seeds, both
     protocols; the honest one with its pooled 95 % interval) beside the paper's rows."""
     rows = group_rows(cells)
-    algos = list(dict.fromkeys(cell.algo for cell in cells)) or list(config.algos)
+    algos = list(dict.fromkeys([*config.algos, *(cell.algo for cell in cells)]))  # stable rows, then any other
     header = ([GROUP_TITLES[group] for group in GROUPS[::-1]]
               + ["Adroit " + task.split("-")[1].title() for task in ADROIT_COLUMNS])
     bench = config.cell_config()
@@ -170,7 +174,7 @@ def report(cells: list[Cell], config: Table1Config) -> str:
         f"training; honest: the final checkpoint on {bench.final_episodes} new layouts per seed. Each entry: "
         "mean ± std over seeds of the group's mean over its tasks (a seed counts once every task of the group "
         "has it), the honest one with the 95 % Wilson interval of the group's final episodes pooled; "
-        "(k/N tasks): a group not yet complete for any seed.",
+        "'x over k/N tasks': a group not yet complete for any seed, the mean over its finished cells.",
         "",
         "| method | protocol | " + " | ".join(header) + " |",
         "| --- | --- | " + " | ".join("---" for _ in header) + " |",

@@ -52,7 +52,7 @@ def test_report_gives_group_means_over_complete_seeds():
     # Seeds 0 and 1: group means 30 % and 40 %; sample std 7.07; pooled 440 wins of 1100 episodes.
     low, high = _wilson(440, 1100)
     assert very_hard == f"35.0 ± 7.1 [{100 * low:.0f}-{100 * high:.0f}] (2 seeds)"
-    assert hard == "(2/4 tasks)" and easy == medium == "-"
+    assert hard == "75.0 over 2/4 tasks" and easy == medium == "-"
     assert adroit == ["-", "-", "-"]
     # One periodic evaluation each: the paper protocol equals the honest figure here.
     assert rows["`mp1`", "paper"][3].strip() == "35.0 ± 7.1 (2 seeds)"
@@ -77,7 +77,7 @@ def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
           "--report"])
     out = capsys.readouterr().out
     assert "4 of 5 cells finished, 1.0 CPU-hours" in out and "the other 1 at their mean rate: about 0.2" in out
-    assert "(4/5 tasks)" in (tmp_path / "table1.md").read_text()
+    assert "50.0 over 4/5 tasks" in (tmp_path / "table1.md").read_text()
     assert len((tmp_path / "tasks.csv").read_text().splitlines()) == 5
     assert not (tmp_path / "table1.png").exists()  # no complete seed to draw yet
     success._store(config.cell_config(), _cell(VERY_HARD[4], "mp1", 0, 50))
