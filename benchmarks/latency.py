@@ -1,7 +1,8 @@
 """Inference latency at batch 1 on the CPU (``d2a bench latency``).
 
 D2A's MeanFlow expert (1 network evaluation per chunk) against the DP3-style diffusion
-expert (10 DDIM evaluations), with the same encoders and network, and the world model's
+expert (10 DDIM evaluations) and the FlowPolicy-style consistency flow (1), with the same
+encoders and network, and the world model's
 imagination (voxelize, encode, decode near the present, FPS) per control step. The policies'
 latency does not depend on the weights, so freshly initialised ones are timed on real clouds
 of a D2A env. An untrained world model does not know what moves, so it decodes the whole band
@@ -74,7 +75,8 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
                    "agent_pos": Normalizer(-torch.ones(state_dim), torch.ones(state_dim)),
                    "point_cloud": Normalizer(cloud.amin(0), cloud.amax(0))}
     results = {}
-    policies = {algo: PolicyConfig(algo=algo, num_points=config.num_points) for algo in ("d2a", "mp1", "dp3")}
+    policies = {algo: PolicyConfig(algo=algo, num_points=config.num_points)
+                for algo in ("d2a", "mp1", "dp3", "flowpolicy")}
     policies["d2a cpu preset"] = dataclasses.replace(CPU_POLICY_PRESET, algo="d2a")
     for name, policy_config in policies.items():
         policy = Policy(policy_config, action_dim, state_dim, normalizers).eval()
@@ -104,6 +106,8 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
     print(f"| D2A policy (MeanFlow; current + imagined cloud encoders) | 1 | {1000 * results['d2a']:.2f} |")
     print(f"| MeanFlow policy, one cloud encoder (MP1-style) | 1 | {1000 * results['mp1']:.2f} |")
     print(f"| DP3-style policy (DDIM), the same single encoder | 10 | {1000 * results['dp3']:.2f} |")
+    print(f"| FlowPolicy-style policy (consistency flow, one Euler step), the same single encoder | 1 | "
+          f"{1000 * results['flowpolicy']:.2f} |")
     print(f"| D2A policy, cpu preset ({CPU_POLICY_PRESET.num_points} points) | 1 | "
           f"{1000 * results['d2a cpu preset']:.2f} |")
     for name, seconds in results.items():

@@ -11,6 +11,7 @@ Variants (``--algo``), all on the same encoders, network, data and evaluation:
 | ``d2a-present`` | MeanFlow, 1 step | cloud + ``agent_pos`` | the current cloud again | yes |
 | ``mp1`` | MeanFlow, 1 step | cloud + ``agent_pos`` | no | no |
 | ``dp3`` | diffusion, DDIM 10 steps | cloud + ``agent_pos`` | no | no |
+| ``flowpolicy`` | consistency flow matching, 1 step (FlowPolicy) | cloud + ``agent_pos`` | no | no |
 | ``mp1-state`` | MeanFlow, 1 step | the simulator's ``state`` | no | no |
 
 ``mp1-state`` is the perception reference: the same action expert fed privileged state
@@ -50,7 +51,7 @@ CLOUD_KEYS = ("point_cloud", IMAGINED_KEY)  # normalized with the current cloud'
 class Variant:
     """What an ``--algo`` name stands for (the one place it is decoded)."""
 
-    expert: str  # "meanflow" or "diffusion"
+    expert: str  # "meanflow", "diffusion" or "consistency-flow"
     # The second cloud encoder's input: "none" (no second encoder), "world-model" (the
     # imagined cloud) or "present" (the current cloud again, the control of imagination).
     imagination: str = "none"
@@ -67,6 +68,7 @@ VARIANTS: dict[str, Variant] = {
     "d2a-present": Variant("meanflow", imagination="present", cfg=True),
     "mp1": Variant("meanflow"),
     "dp3": Variant("diffusion"),
+    "flowpolicy": Variant("consistency-flow"),
     "mp1-state": Variant("meanflow", observation="state"),
 }
 ALGORITHMS = tuple(VARIANTS)
@@ -169,11 +171,16 @@ CPU_POLICY_PRESET = PolicyConfig(
 
 
 def make_expert(config: PolicyConfig):
-    """The action expert of ``config.algo`` (MeanFlow, with adaptive CFG or not, or diffusion)."""
+    """The action expert of ``config.algo`` (MeanFlow, with adaptive CFG or not, diffusion, or
+    consistency flow matching)."""
     if config.variant.expert == "diffusion":
         from d2a_agents.policy.diffusion import Diffusion, DiffusionConfig
 
         return Diffusion(DiffusionConfig(prediction_type=config.diffusion_prediction))
+    if config.variant.expert == "consistency-flow":
+        from d2a_agents.policy.consistency_flow import ConsistencyFlow
+
+        return ConsistencyFlow()
     from d2a_agents.policy.meanflow import MeanFlow, MeanFlowConfig
 
     tau_l, tau_h = config.cfg_thresholds

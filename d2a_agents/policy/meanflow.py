@@ -125,12 +125,12 @@ def cfg_weight(rho: torch.Tensor, tau_l: float, tau_h: float) -> torch.Tensor:
     return ((rho - tau_l) / (tau_h - tau_l)).clamp(0.0, 1.0)
 
 
-def _per_sample(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+def per_sample(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     """Reshape a per-sample (B,) tensor to broadcast against a (B, ...) tensor."""
     return x.reshape(-1, *([1] * (like.dim() - 1)))
 
 
-def _draw(
+def draw(
     kind: str, shape: tuple[int, ...], like: torch.Tensor, generator: torch.Generator | None
 ) -> torch.Tensor:
     """Uniform ("rand") or normal ("randn") draws on the generator's device (reproducible), moved to ``like``'s."""
@@ -158,7 +158,7 @@ def meanflow_target(
         return net(z_, r_, t_, cond, drop)
 
     u, du_dt = jvp(average_velocity, (z, r, t), (v, torch.zeros_like(r), torch.ones_like(t)))
-    target = v - _per_sample(t - r, v) * du_dt
+    target = v - per_sample(t - r, v) * du_dt
     return u, target.detach()
 
 
@@ -173,9 +173,9 @@ class MeanFlow:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """(r, t), each (B,): logit-normal pair sorted so r <= t, r = t on ``flow_ratio_equal`` of the batch."""
         c = self.config
-        times = torch.sigmoid(c.time_mean + c.time_std * _draw("randn", (2, batch), like, generator))
+        times = torch.sigmoid(c.time_mean + c.time_std * draw("randn", (2, batch), like, generator))
         r, t = times.min(dim=0).values, times.max(dim=0).values
-        equal = _draw("rand", (batch,), like, generator) < c.flow_ratio_equal
+        equal = draw("rand", (batch,), like, generator) < c.flow_ratio_equal
         return torch.where(equal, t, r), t
 
     def guided_velocity(
@@ -200,7 +200,7 @@ class MeanFlow:
         rho = F.cosine_similarity(reference.flatten(1), u_null.flatten(1), dim=1)
         w = cfg_weight(rho, self.config.tau_l, self.config.tau_h)
         mix = 1 + self.config.cfg_scale * w if self.config.cfg_guidance == "amplify" else w
-        return _per_sample(mix, v) * v + _per_sample(1 - mix, v) * u_null, w, rho
+        return per_sample(mix, v) * v + per_sample(1 - mix, v) * u_null, w, rho
 
     def loss(
         self, net: nn.Module, actions: torch.Tensor, cond: torch.Tensor, generator: torch.Generator | None = None
@@ -214,16 +214,16 @@ class MeanFlow:
         """
         c = self.config
         batch = actions.shape[0]
-        noise = _draw("randn", tuple(actions.shape), actions, generator)
+        noise = draw("randn", tuple(actions.shape), actions, generator)
         r, t = self.sample_times(batch, actions, generator)
-        z = (1 - _per_sample(t, actions)) * actions + _per_sample(t, actions) * noise
+        z = (1 - per_sample(t, actions)) * actions + per_sample(t, actions) * noise
         v = noise - actions
         info: dict[str, float] = {}
         drop = None
         if c.cfg_enabled:
-            drop = _draw("rand", (batch,), actions, generator) < c.drop_probability
+            drop = draw("rand", (batch,), actions, generator) < c.drop_probability
             v_cfg, w, rho = self.guided_velocity(net, z, t, v, cond)
-            v = torch.where(_per_sample(drop, v), v, v_cfg)
+            v = torch.where(per_sample(drop, v), v, v_cfg)
             kept = ~drop
             info["drop_fraction"] = drop.float().mean().item()
             for key, value in (("cfg_weight", w), ("cfg_rho", rho), ("cfg_active", (w < 1).float())):
@@ -251,7 +251,7 @@ class MeanFlow:
         if steps < 1:
             raise ValueError(f"steps must be >= 1, got {steps}")
         batch = cond.shape[0]
-        z = _draw("randn", (batch, net.horizon, net.action_dim), cond, generator)
+        z = draw("randn", (batch, net.horizon, net.action_dim), cond, generator)
         times = torch.linspace(1.0, 0.0, steps + 1, dtype=cond.dtype, device=cond.device)
         for t_value, r_value in zip(times[:-1], times[1:], strict=True):
             t, r = t_value.expand(batch), r_value.expand(batch)
