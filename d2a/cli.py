@@ -323,6 +323,13 @@ def cmd_bench_wm(args: argparse.Namespace) -> None:
                        horizons=tuple(args.horizon) if args.horizon else None, workdir=args.workdir))
 
 
+def cmd_bench_change(args: argparse.Namespace) -> None:
+    from benchmarks.change import ChangeBenchConfig, run
+
+    run(_replace_given(ChangeBenchConfig(world_model=args.world_model, data=args.data), demos=args.demos,
+                       stride=args.stride, num_points=args.points))
+
+
 def cmd_bench_success(args: argparse.Namespace) -> None:
     from benchmarks.success import PRESETS, run
 
@@ -605,6 +612,17 @@ def build_parser() -> argparse.ArgumentParser:
     bench_wm.add_argument("--backend", choices=("raycast", "render"), default=None, help="depth backend")
     bench_wm.add_argument("--workdir", default=None)
     bench_wm.set_defaults(func=cmd_bench_wm)
+
+    bench_change = bench.add_parser("change", help="how close the imagined change, the observed change and the "
+                                                   "present cloud come to where the scene will change")
+    bench_change.add_argument("--world-model", required=True, help="checkpoint of d2a train-wm")
+    bench_change.add_argument("--data", required=True, help="its demonstrations")
+    bench_change.add_argument("--demos", type=POSITIVE, default=None,
+                              help="the world model trained on the first N of each task: measure on the rest "
+                                   "(default: its own held-out episodes)")
+    bench_change.add_argument("--stride", type=POSITIVE, default=None, help="every k-th transition (default 2)")
+    bench_change.add_argument("--points", type=POSITIVE, default=None, help="points per cloud (default 64)")
+    bench_change.set_defaults(func=cmd_bench_change)
 
     bench_success = bench.add_parser("success", help="success rates of d2a / d2a-no-cfg / mp1 / dp3, both protocols")
     bench_success.add_argument("--preset", choices=("cpu", "paper"), default="cpu",

@@ -354,3 +354,18 @@ def test_a_policy_on_the_first_demonstration_fits_its_normalizers_to_it_alone(re
     assert load_checkpoint(tmp_path / "all" / CHECKPOINT_NAME, "policy")["run_config"]["demos"] is None
     with pytest.raises(DatasetError, match="fewer than 3 episodes"):
         train_policy(dataclasses.replace(config, out=str(tmp_path / "three"), demos=3))
+
+
+def test_bench_change_measures_every_cloud_on_held_out_transitions(reach_data, world_model, capsys):
+    from benchmarks.change import ChangeBenchConfig, held_out_episodes, run
+
+    dataset = DemoDataset.open(reach_data)
+    assert held_out_episodes(dataset, 1) == [1] and held_out_episodes(dataset, None) == [1]
+    with pytest.raises(ValueError, match="no episode after the first 2"):
+        held_out_episodes(dataset, 2)
+    result = run(ChangeBenchConfig(world_model=world_model, data=reach_data, demos=1, stride=3, num_points=16))
+    assert set(result) == {"imagined change", "observed change", "present", "true change"}
+    assert result["true change"]["precision"] == 0.0  # its points are the truth's own
+    assert len({row["transitions"] for row in result.values()}) == 1 and result["present"]["transitions"] > 0
+    assert all(0 <= row[key] < 1.0 for row in result.values() for key in ("precision", "coverage"))
+    assert "| imagined change |" in capsys.readouterr().out

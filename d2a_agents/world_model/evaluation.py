@@ -1,5 +1,6 @@
-"""What an imagination costs and how close it comes: latency per control step and Chamfer
-distance to the true future cloud, on stored demonstrations."""
+"""What an imagination costs and how close it comes: latency per control step, Chamfer
+distance to the true future cloud, and how well the imagined change finds what moves, on
+stored demonstrations."""
 
 from __future__ import annotations
 
@@ -67,3 +68,64 @@ def imagination_chamfer(
         oracle = occupancy_to_points(grid, grid.voxelize(future).nonzero(), cloud, grid.voxelize(cloud), True)
         sums["oracle"] += chamfer_distance(sample_to_size(oracle.numpy(), imaginer.num_points, rng), future)
     return {name: total / len(positions) for name, total in sums.items()}
+
+
+def _one_way(source: torch.Tensor, target: torch.Tensor) -> float:
+    """Mean distance (m) from each ``source`` point to its nearest ``target`` point."""
+    return float(torch.cdist(source, target, compute_mode="donot_use_mm_for_euclid_dist").min(dim=1).values.mean())
+
+
+def change_distances(
+    checkpoint: Path, dataset: DemoDataset, episodes: list[int], stride: int, num_points: int = 64,
+) -> dict[str, dict[str, float]]:
+    """How close each cloud a policy could read comes to where the scene will change.
+
+    On every ``stride``-th held-out transition t -> t + H with t >= H, the truth is the centres of
+    the voxels occupied at t + H and empty at t (steps where nothing newly fills are skipped).
+    Candidates, each at ``num_points`` points: ``imagined change`` (the world model's change
+    cloud), ``observed change`` (the voxels newly filled from t - H to t: motion continued, what
+    the observation history shows), ``present`` (the current cloud, FPS: what ``d2a-present``
+    reads) and ``true change`` (the truth itself resampled: the floor). Per candidate, the mean
+    distance (m) from it to the truth (``precision``: does it point where things go) and from
+    the truth to it (``coverage``), averaged over the transitions; ``transitions`` counts them.
+    """
+    frames = dataset.frames()
+    imaginer = Imaginer.from_checkpoint(checkpoint, num_points=num_points, output="change")
+    grid, horizon = imaginer.grid, imaginer.config.horizon
+    transitions = WorldModelTransitions(frames, grid, horizon, imaginer.config.action_history, episodes)
+    steps = torch.as_tensor(frames["step"])
+    rng = np.random.default_rng(0)
+    names = ("imagined change", "observed change", "present", "true change")
+    sums = {name: {"precision": 0.0, "coverage": 0.0} for name in names}
+    count = 0
+
+    def resample(points: torch.Tensor) -> torch.Tensor:
+        return torch.as_tensor(sample_to_size(points.numpy(), num_points, rng))
+
+    def newly_filled(before: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
+        return grid.centres((grid.voxelize(after) & ~grid.voxelize(before)).nonzero())
+
+    for position in range(0, len(transitions), stride):
+        row = int(transitions.rows[position])
+        if int(steps[row]) < horizon:
+            continue
+        cloud, future, past = (torch.as_tensor(frames["point_cloud"][index])[:, :3].float()
+                               for index in (row, int(transitions.targets[position]), row - horizon))
+        truth = newly_filled(cloud, future)
+        if len(truth) == 0:
+            continue
+        observed = newly_filled(past, cloud)
+        candidates = {
+            "imagined change": torch.as_tensor(imaginer(cloud, transitions.past_actions(torch.tensor([position]))[0])),
+            "observed change": resample(observed if len(observed) else cloud),
+            "present": resample(cloud),
+            "true change": resample(truth),
+        }
+        for name, points in candidates.items():
+            sums[name]["precision"] += _one_way(points, truth)
+            sums[name]["coverage"] += _one_way(truth, points)
+        count += 1
+    if count == 0:
+        raise ValueError("no held-out transition where anything newly fills: nothing to measure")
+    return {name: {key: value / count for key, value in parts.items()} | {"transitions": count}
+            for name, parts in sums.items()}
