@@ -323,6 +323,12 @@ def cmd_bench_wm(args: argparse.Namespace) -> None:
                        horizons=tuple(args.horizon) if args.horizon else None, workdir=args.workdir))
 
 
+def cmd_bench_fusion(args: argparse.Namespace) -> None:
+    from benchmarks.fusion import FusionBenchConfig, run
+
+    run(_replace_given(FusionBenchConfig(), repeats=args.repeats))
+
+
 def cmd_bench_change(args: argparse.Namespace) -> None:
     from benchmarks.change import ChangeBenchConfig, run
 
@@ -612,6 +618,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench_wm.add_argument("--backend", choices=("raycast", "render"), default=None, help="depth backend")
     bench_wm.add_argument("--workdir", default=None)
     bench_wm.set_defaults(func=cmd_bench_wm)
+
+    bench_fusion = bench.add_parser("fusion", help="two 640x480 depth frames fused to 1024 points: ms on one thread")
+    bench_fusion.add_argument("--repeats", type=POSITIVE, default=None)
+    bench_fusion.set_defaults(func=cmd_bench_fusion)
 
     bench_change = bench.add_parser("change", help="how close the imagined change, the observed change and the "
                                                    "present cloud come to where the scene will change")

@@ -13,7 +13,8 @@ import numpy as np
 
 from d2a_envs.camera import backproject, camera_id, camera_intrinsics, camera_pose
 from d2a_envs.depth import DEPTH_BACKENDS, DepthBackend, make_depth_backend
-from d2a_envs.sampling import CropBox, sample_to_size
+from d2a_envs.rgbd import PointCloudReading, crop_and_sample
+from d2a_envs.sampling import CropBox
 
 
 @dataclass(frozen=True)
@@ -63,14 +64,6 @@ class PointCloudConfig:
     def updated(self, **changes: object) -> PointCloudConfig:
         """Copy with some fields changed (``None`` values are ignored)."""
         return replace(self, **{k: v for k, v in changes.items() if v is not None})
-
-
-@dataclass
-class PointCloudReading:
-    """One observation: exactly ``num_points`` points and how many the crop really held."""
-
-    points: np.ndarray
-    num_in_crop: int
 
 
 class PointCloudSensor:
@@ -123,14 +116,8 @@ class PointCloudSensor:
         error (wrong box or cameras), not something to paper over.
         """
         raw = self.fused_points(model, data, only_crop=True)
-        cropped = raw[self.config.crop_box.contains(raw)]
-        if len(cropped) == 0:
-            raise ValueError(
-                f"no point seen by cameras {self.config.cameras} lies inside the crop box "
-                f"low={self.config.crop_box.low}, high={self.config.crop_box.high}; check the box and cameras"
-            )
-        points = sample_to_size(cropped, self.config.num_points, rng).astype(np.float32)
-        return PointCloudReading(points=points, num_in_crop=len(cropped))
+        return crop_and_sample(raw, self.config.crop_box, self.config.num_points, rng,
+                               f"cameras {self.config.cameras}")  # as real cameras' frames are (d2a_envs.rgbd)
 
     def close(self) -> None:
         """Release the depth backend (GL context, caches)."""
