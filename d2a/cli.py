@@ -174,6 +174,30 @@ def cmd_data_export(args: argparse.Namespace) -> None:
     print(f"wrote {export_dp3(args.dir, args.dp3, overwrite=args.overwrite)}")
 
 
+def cmd_act(args: argparse.Namespace) -> None:
+    import gymnasium as gym
+
+    import d2a_envs
+    from d2a_agents.deploy import DeploymentLoop, SimCameras, SimRobot
+    from d2a_agents.policy.checkpoints import load_checkpoint, policy_file
+
+    payload = load_checkpoint(policy_file(args.policy), "policy")
+    task = args.task or payload["tasks"][0]
+    env_kwargs = {k: v for k, v in payload["env_kwargs"][task].items() if k != "max_episode_steps"}
+    env = gym.make(d2a_envs.get_task(task).env_id, **env_kwargs)
+    config = env.get_wrapper_attr("config")
+    cameras = SimCameras(env, config.cameras, config.image_size[0], config.backend)
+    robot = SimRobot(env, seed=args.seed)
+    try:
+        rate = {} if args.hz is None else {"hz": args.hz}
+        log = DeploymentLoop(args.policy, cameras, robot, seed=args.seed, **rate).run(args.steps)
+    finally:
+        cameras.close()
+        env.close()
+    print(log.summary())
+    print(f"the simulated {task} reported success on {robot.successes} of {len(log.steps)} steps")
+
+
 def cmd_report(args: argparse.Namespace) -> None:
     from d2a_agents.checkpoint import CheckpointError
     from d2a_agents.policy.report import format_report, plot_report, read_run, report_rows
@@ -542,6 +566,15 @@ def build_parser() -> argparse.ArgumentParser:
                                  "checkpoint's; 1 plans after every action)")
     _add_ray_option(evaluation)
     evaluation.set_defaults(func=cmd_eval)
+
+    act = commands.add_parser("act", help="run a checkpoint at a fixed control rate on a robot (here the simulated "
+                                          "one; your own through d2a_agents.deploy's interfaces); Ctrl-C stops")
+    act.add_argument("--policy", required=True, help="policy.pt of d2a train-policy (or its run directory)")
+    act.add_argument("--task", default=None, help="default: the policy's first task")
+    act.add_argument("--steps", type=POSITIVE, default=None, help="control steps (default: until Ctrl-C)")
+    act.add_argument("--hz", type=_finite_at_least(0.001), default=None, help="control rate (default 10)")
+    act.add_argument("--seed", type=NON_NEGATIVE, default=0, help="the simulated scene's layout")
+    act.set_defaults(func=cmd_act)
 
     report = commands.add_parser("report", help="a table of finished policy runs: success over seeds, reliance")
     report.add_argument("runs", nargs="+", metavar="RUN", help="run directories of d2a train-policy (or policy.pt)")

@@ -1,0 +1,121 @@
+"""The deployment loop on a simulated robot and cameras behind the real interfaces: it fuses the
+training cloud, imagines for a d2a policy, applies one action per period, logs its timing,
+counts late steps and stops cleanly on Ctrl-C."""
+
+from __future__ import annotations
+
+import itertools
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from d2a_agents.deploy import DeploymentLoop, SimCameras, SimRobot
+from d2a_agents.policy.agent import PolicyConfig
+from d2a_agents.policy.checkpoints import CHECKPOINT_NAME
+from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
+from d2a_agents.policy.train import TrainPolicyConfig, train_policy
+from d2a_agents.world_model.imagine import IMAGINED_KEY
+from d2a_envs.rgbd import fuse_frames
+
+ENV_KWARGS = {"image_size": 48, "num_points": 128}  # the conftest's reach_data settings
+
+
+def _checkpoint(reach_data, out, algo="mp1", world_model=None) -> str:
+    policy = PolicyConfig(algo=algo, num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
+                          network=VelocityNetConfig(hidden=32, layers=2))
+    train_policy(TrainPolicyConfig(data=reach_data, out=str(out), policy=policy, world_model=world_model, steps=2,
+                                   batch_size=4, eval_episodes=0, progress=False))
+    return str(out / CHECKPOINT_NAME)
+
+
+class FakeClock:
+    """Advances ``tick`` seconds per reading; records the sleeps."""
+
+    def __init__(self, tick: float) -> None:
+        self.times, self.slept = itertools.count(0.0, tick), []
+
+    def __call__(self) -> float:
+        return next(self.times)
+
+    def sleep(self, seconds: float) -> None:
+        self.slept.append(seconds)
+
+
+@pytest.fixture
+def sim():
+    env = gym.make("D2A-MetaWorld-Reach-v0", **ENV_KWARGS)
+    robot, cameras = SimRobot(env, seed=3), SimCameras(env, ("corner4",), image_size=48)
+    yield env, robot, cameras
+    cameras.close()
+    env.close()
+
+
+def test_the_loop_observes_the_training_cloud_and_applies_one_action_per_period(reach_data, tmp_path, sim):
+    env, robot, cameras = sim
+    clock = FakeClock(0.01)  # four readings a step: 30 ms of work
+    loop = DeploymentLoop(_checkpoint(reach_data, tmp_path), cameras, robot, hz=10, clock=clock, sleep=clock.sleep)
+    observation = loop.observe()
+    assert observation["point_cloud"].shape == (128, 3) and observation["agent_pos"].shape == (4,)
+    # The same cameras as the env's own sensor, in the checkpoint's box: the same points land in the crop.
+    assert loop.crop_box == env.get_wrapper_attr("config").crop_box
+    reading = fuse_frames(cameras.frames(), loop.crop_box, 128, np.random.default_rng(0))
+    assert reading.num_in_crop == robot.info["num_points_in_crop"] > 128
+    log = loop.run(steps=6)
+    assert len(log.steps) == 6 and not log.interrupted
+    assert env.get_wrapper_attr("_elapsed_steps") == 6  # six actions applied
+    assert not any(step.late for step in log.steps) and len(clock.slept) == 6
+    assert all(step.total == pytest.approx(0.03) for step in log.steps)
+    assert "6 steps at 10 Hz" in log.summary() and "late steps 0 (0.0 %)" in log.summary()
+    late = DeploymentLoop(_checkpoint(reach_data, tmp_path / "again"), cameras, robot, hz=50, clock=FakeClock(0.01),
+                          sleep=lambda seconds: pytest.fail("a late loop must not sleep"))
+    assert all(step.late for step in late.run(steps=3).steps)  # 30 ms of work in a 20 ms period
+
+
+def test_a_d2a_policy_imagines_from_the_actions_it_applied(reach_data, tmp_path, sim):
+    from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
+    from d2a_agents.world_model.triplane import WorldModelConfig
+
+    env, robot, cameras = sim
+    wm = tmp_path / "wm.pt"
+    model = WorldModelConfig(resolution=(16, 16, 8))
+    train_world_model(TrainWorldModelConfig(data=reach_data, out=str(wm), model=model, steps=2, batch_size=2,
+                                            queries=256, validate_every=2, validation_stride=20, progress=False))
+    loop = DeploymentLoop(_checkpoint(reach_data, tmp_path / "d2a", "d2a", str(wm)), cameras, robot, hz=1000)
+    seen, applied = [], []
+    select, apply = loop.policy.select_action, robot.apply
+    loop.policy.select_action = lambda observation: seen.append(observation) or select(observation)
+    robot.apply = lambda action: applied.append(action) or apply(action)
+    loop.run(steps=5)
+    assert all(observation[IMAGINED_KEY].shape == (64, 3) for observation in seen)
+    history = loop.imaginer.config.action_history
+    expected = np.stack(([np.zeros(4)] * history + applied)[-history:])
+    np.testing.assert_allclose(loop.history, expected)  # the last actions applied, oldest first
+
+
+def test_ctrl_c_stops_the_robot_and_returns_the_log(reach_data, tmp_path, sim):
+    env, robot, cameras = sim
+    stopped, applied = [], []
+
+    class Interrupting(SimRobot):
+        def apply(self, action):
+            if len(applied) == 2:
+                raise KeyboardInterrupt
+            applied.append(action)
+            super().apply(action)
+
+        def stop(self):
+            stopped.append(True)
+
+    loop = DeploymentLoop(_checkpoint(reach_data, tmp_path), cameras, Interrupting(env), hz=1000)
+    log = loop.run()
+    assert log.interrupted and len(log.steps) == 2 and stopped == [True]
+    assert all(np.isfinite(action).all() for action in applied)
+
+
+def test_d2a_act_runs_a_checkpoint_on_the_simulated_robot(reach_data, tmp_path, capsys):
+    from d2a.cli import main
+
+    main(["act", "--policy", _checkpoint(reach_data, tmp_path), "--steps", "4", "--hz", "1000"])
+    out = capsys.readouterr().out
+    assert "4 steps at 1000 Hz" in out and "the simulated reach reported success on" in out
