@@ -29,6 +29,13 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     _atomic_write(path, "w", lambda handle: handle.write(text))
 
 
+def atomic_savez(path: str | Path, **arrays: Any) -> None:
+    """``numpy.savez_compressed`` to ``path`` through a temporary file and an atomic rename."""
+    import numpy as np
+
+    _atomic_write(path, "wb", lambda handle: np.savez_compressed(handle, **arrays))
+
+
 def atomic_torch_save(obj: Any, path: str | Path) -> None:
     """``torch.save`` to ``path`` through a temporary file and an atomic rename."""
     _atomic_write(path, "wb", lambda handle: torch.save(obj, handle))

@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 from collectors.ray_jobs import JobsLost  # the standard library only: `d2a --help` stays fast
@@ -162,10 +163,25 @@ def cmd_data_info(args: argparse.Namespace) -> None:
 
 
 def cmd_data_import(args: argparse.Namespace) -> None:
-    from collectors.dp3_format import import_dp3
     from collectors.storage import describe
 
-    print(describe(import_dp3(args.dp3, args.out, args.task, _env_kwargs(args) or None, overwrite=args.overwrite)))
+    if args.dp3:
+        from collectors.dp3_format import import_dp3
+
+        if args.task is None:
+            raise ValueError("--dp3 needs --task: the task its episodes show")
+        dataset = import_dp3(args.dp3, args.out, args.task, _env_kwargs(args) or None, overwrite=args.overwrite)
+    else:
+        import json
+
+        import d2a_envs
+        from collectors.recording import import_recording
+
+        task = json.loads((Path(args.recording) / "recording.json").read_text())["task"]
+        suite = d2a_envs.SUITE_DEFAULTS[d2a_envs.get_task(task).suite]
+        dataset = import_recording(args.recording, args.out, crop_box=args.crop_box or suite.crop_box,
+                                   num_points=args.num_points or suite.num_points, overwrite=args.overwrite)
+    print(describe(dataset))
 
 
 def cmd_data_export(args: argparse.Namespace) -> None:
@@ -585,12 +601,15 @@ def build_parser() -> argparse.ArgumentParser:
     data_info = data.add_parser("info", help="episodes, lengths, success, point counts, size on disk")
     data_info.add_argument("dir")
     data_info.set_defaults(func=cmd_data_info)
-    data_import = data.add_parser("import", help="a DP3 / MP1 zarr (data/point_cloud, state, action, "
-                                                 "meta/episode_ends) into a data set here")
-    data_import.add_argument("--dp3", required=True, metavar="ZARR", help="the DP3 / MP1 zarr directory")
+    data_import = data.add_parser("import", help="a DP3 / MP1 zarr or a recording of real episodes into a data set")
+    source = data_import.add_mutually_exclusive_group(required=True)
+    source.add_argument("--dp3", metavar="ZARR", help="a DP3 / MP1 zarr (data/point_cloud, state, action, "
+                                                     "meta/episode_ends)")
+    source.add_argument("--recording", metavar="DIR", help="a recording (collectors/recording.py): its frames are "
+                                                         "fused into clouds with --crop-box and --num-points")
     data_import.add_argument("--out", required=True, help="data set directory to create")
     data_import.add_argument("--overwrite", action="store_true", help="replace an existing data set")
-    data_import.add_argument("--task", required=True, help="the task its episodes show (see `d2a tasks`)")
+    data_import.add_argument("--task", default=None, help="the task a DP3 zarr's episodes show (see `d2a tasks`)")
     _add_cloud_options(data_import)  # the env options whose clouds match the file's
     data_import.set_defaults(func=cmd_data_import)
     data_export = data.add_parser("export", help="a data set here as a DP3 / MP1 zarr")
