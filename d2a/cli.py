@@ -272,6 +272,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                             learning_rate=args.lr, trim_after_success=args.trim_after_success)
     policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
                             n_action_steps=args.n_action_steps, num_points=args.policy_points,
+                            imagined_points=args.imagined_points,
                             cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
                             cfg_guidance=args.cfg_guidance, cfg_scale=args.cfg_scale,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
@@ -380,6 +381,9 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
     from benchmarks.success import PRESETS, run
 
     base = PRESETS[args.preset]
+    if args.imagined_points is not None:
+        base = dataclasses.replace(base, policy=dataclasses.replace(
+            base.policy, policy=dataclasses.replace(base.policy.policy, imagined_points=args.imagined_points)))
     env_kwargs = {k: v for k, v in dict(image_size=args.image_size, num_points=args.num_points,
                                         backend=args.backend).items() if v is not None}
     world_model = None
@@ -539,6 +543,9 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--policy-points", type=POSITIVE, default=None,
                               help="points per cloud the encoders read, farthest-point sampled from the data's "
                                    "clouds (default: the preset's; the env's cloud size is the data's)")
+    train_policy.add_argument("--imagined-points", type=POSITIVE, default=None,
+                              help="points of the second cloud (the imagined one, or d2a-present's copy of the "
+                                   "present; default: --policy-points)")
     train_policy.add_argument("--cfg-similarity", choices=("velocity", "prediction"), default=None,
                               help="rho of the adaptive CFG gate: cos(u_cond, u_null) (default) or cos(v, u_null) "
                                    "with v the sampled velocity (MeanFlow's CFG reading)")
@@ -702,6 +709,9 @@ def build_parser() -> argparse.ArgumentParser:
                                help="demonstrations collected per task (default: --demos); a workdir with cells of "
                                     "several counts collects the largest, so world models validate on the rest")
     bench_success.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
+    bench_success.add_argument("--imagined-points", type=POSITIVE, default=None,
+                               help="points of the second cloud encoder's input (default: the preset's 64); cells "
+                                    "named with the preset's digest")
     bench_success.add_argument("--evaluations", type=POSITIVE, default=None,
                                help="periodic evaluations during training, the last at the final step; the paper "
                                     "protocol averages the best 5 (default: the preset's, cpu 5, paper 15)")

@@ -120,7 +120,8 @@ class DeploymentLoop:
         self.imaginer = None
         if payload["world_model"] is not None:
             imagined = VARIANTS[self.policy.config.algo].imagined
-            self.imaginer = Imaginer.from_checkpoint(payload["world_model"], num_points=self.policy.config.num_points,
+            self.imaginer = Imaginer.from_checkpoint(payload["world_model"],
+                                                     num_points=self.policy.config.imagined_point_count,
                                                      seed=seed, output=imagined)
             self.history = np.zeros((self.imaginer.config.action_history, self.imaginer.config.action_dim),
                                     dtype=np.float32)

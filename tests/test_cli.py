@@ -262,6 +262,10 @@ def test_demos_reach_the_trainers_and_the_bench(captured):
     assert (captured["config"].demos, captured["config"].pool, captured["config"].cells) == (1, 20, "kept/cells")
     main(["train-policy", "--data", "d", "--out", "o"])
     assert captured["config"].demos is None  # every episode
+    main(["train-policy", "--data", "d", "--out", "o", "--imagined-points", "256"])
+    assert captured["config"].policy.imagined_points == 256
+    main(["bench", "success", "--imagined-points", "256"])
+    assert captured["config"].policy.policy.imagined_points == 256 and captured["config"].policy.policy.num_points == 64
 
 
 def test_bench_table1_options_and_defaults(monkeypatch):

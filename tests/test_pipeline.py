@@ -369,3 +369,36 @@ def test_bench_change_measures_every_cloud_on_held_out_transitions(reach_data, w
     assert len({row["transitions"] for row in result.values()}) == 1 and result["present"]["transitions"] > 0
     assert all(0 <= row[key] < 1.0 for row in result.values() for key in ("precision", "coverage"))
     assert "| imagined change |" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("algo", ["d2a", "d2a-present"])
+def test_the_second_cloud_takes_a_point_count_of_its_own(algo, reach_data, world_model, tmp_path):
+    config = policy_config(algo, reach_data, tmp_path, world_model=world_model if algo == "d2a" else None)
+    config = dataclasses.replace(config, policy=dataclasses.replace(config.policy, imagined_points=32))
+    assert config.policy.imagined_point_count == 32 and config.policy.num_points == 64
+    policy, history = train_policy(config)
+    assert history[0].episodes == 1  # acting read both clouds at their counts
+    payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
+    if algo == "d2a":
+        assert eval_env_kwargs(payload, "reach")["imagined_points"] == 32
+    from d2a_agents.world_model.imagine import IMAGINED_KEY
+
+    observation = {"point_cloud": np.random.default_rng(0).normal(size=(128, 3)).astype(np.float32),
+                   "agent_pos": np.zeros(4, np.float32)}
+    if algo == "d2a":
+        observation[IMAGINED_KEY] = observation["point_cloud"]
+    policy.reset(seed=0)
+    policy.select_action(observation)
+    frame = policy._history[-1]
+    assert frame["point_cloud"].shape == (64, 3) and frame[IMAGINED_KEY].shape == (32, 3)
+
+
+def test_d2a_present_without_a_count_of_its_own_reads_the_present_cloud_itself(reach_data, tmp_path):
+    from d2a_agents.policy.train import training_frames
+    from d2a_agents.world_model.imagine import IMAGINED_KEY
+
+    config = policy_config("d2a-present", reach_data, tmp_path).policy
+    assert IMAGINED_KEY not in config.observation_keys  # the copy is made from the present cloud when encoding
+    own = dataclasses.replace(config, imagined_points=config.num_points)
+    frames = training_frames(DemoDataset.open(reach_data), own, None, progress=False)
+    assert torch.equal(frames[IMAGINED_KEY], frames["point_cloud"])  # the same count: the same points

@@ -84,7 +84,8 @@ class PolicyConfig:
     """Architecture and action-chunking of a policy (defaults: MP1's horizon 4 / 2 / 4).
 
     ``num_points`` < the data's cloud size subsamples clouds by FPS before the encoder (the
-    CPU preset gives up resolution for speed).
+    CPU preset gives up resolution for speed); ``imagined_points`` gives the second cloud
+    encoder (the imagined cloud, or ``d2a-present``'s copy of the present) a count of its own.
     """
 
     algo: str = "d2a"
@@ -92,6 +93,7 @@ class PolicyConfig:
     n_obs_steps: int = 2
     n_action_steps: int = 4
     num_points: int = 512
+    imagined_points: int | None = None  # None: num_points
     # Map clouds per axis onto [-1, 1] with the min/max of the training clouds (DP3, MP1).
     # False feeds raw metres (an ablation: the encoder then barely sees a 10 cm move).
     normalize_clouds: bool = True
@@ -120,8 +122,9 @@ class PolicyConfig:
     def __post_init__(self) -> None:
         if self.algo not in ALGORITHMS:
             raise ValueError(f"unknown algo {self.algo!r}; choose one of {ALGORITHMS}")
-        if self.num_points < 1:
-            raise ValueError(f"num_points must be at least 1, not {self.num_points}")
+        if self.num_points < 1 or (self.imagined_points is not None and self.imagined_points < 1):
+            raise ValueError(f"num_points and imagined_points must be at least 1, not {self.num_points} and "
+                             f"{self.imagined_points}")
         if self.n_action_steps < 1:
             raise ValueError(f"n_action_steps must be at least 1, not {self.n_action_steps}")
         variant = self.variant
@@ -140,8 +143,21 @@ class PolicyConfig:
         return VARIANTS[self.algo]
 
     @property
+    def imagined_point_count(self) -> int:
+        """Points of the second cloud encoder's input."""
+        return self.num_points if self.imagined_points is None else self.imagined_points
+
+    @property
     def observation_keys(self) -> tuple[str, ...]:
-        """The env observations the policy reads, in the order its windows hold them."""
+        """The observations the policy's windows hold, in order: ``imagined_point_cloud`` for a
+        world-model variant, and for ``d2a-present`` when it samples its copy of the present
+        cloud to a count of its own (otherwise that copy is the present cloud itself)."""
+        own_copy = self.variant.imagination == "present" and self.imagined_points is not None
+        return self.env_observation_keys + ((IMAGINED_KEY,) if own_copy else ())
+
+    @property
+    def env_observation_keys(self) -> tuple[str, ...]:
+        """The observations the policy reads from its env (an imagining env adds the imagined cloud)."""
         encoder = self.encoder
         return (("point_cloud",) if encoder.use_cloud else ()) + (encoder.state_key,) + (
             (IMAGINED_KEY,) if self.variant.imagination == "world-model" else ())
@@ -241,7 +257,7 @@ class Policy(nn.Module):
         ``imagined_point_cloud`` (the perception check shuffles that copy alone).
         """
         keys = self.config.observation_keys
-        if self.config.variant.imagination == "present":
+        if self.config.variant.imagination == "present" and IMAGINED_KEY not in keys:
             observation = {IMAGINED_KEY: observation["point_cloud"], **observation}
             keys = (*keys, IMAGINED_KEY)
         normalized = {}
@@ -284,8 +300,10 @@ class Policy(nn.Module):
     def _observe(self, observation: dict[str, np.ndarray]) -> None:
         frame = {}
         for key in self.config.observation_keys:
-            value = torch.as_tensor(np.asarray(observation[key]), dtype=torch.float32)
-            frame[key] = subsample_cloud(value[:, :3], self.config.num_points) if value.ndim == 2 else value
+            source = "point_cloud" if key == IMAGINED_KEY and self.config.variant.imagination == "present" else key
+            value = torch.as_tensor(np.asarray(observation[source]), dtype=torch.float32)
+            points = self.config.imagined_point_count if key == IMAGINED_KEY else self.config.num_points
+            frame[key] = subsample_cloud(value[:, :3], points) if value.ndim == 2 else value
         if not self._history:
             self._history.extend([frame] * self.config.n_obs_steps)  # repeat the first frame, as in training
         else:
@@ -323,7 +341,7 @@ class TorchRLPolicy(TensorDictModuleBase):
     def __init__(self, policy: Policy) -> None:
         super().__init__()
         self.policy = policy.eval()
-        self.observation_keys = {key: TORCHRL_KEYS.get(key, key) for key in policy.config.observation_keys}
+        self.observation_keys = {key: TORCHRL_KEYS.get(key, key) for key in policy.config.env_observation_keys}
         self.in_keys = [*self.observation_keys.values(), "is_init", "episode_seed"]
         self.out_keys = ["action"]
 

@@ -71,8 +71,9 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
         if file_sha256(world_model) != payload.get("world_model_sha256"):
             raise CheckpointError(f"the policy's world model {world_model} has changed since the policy was trained")
         kwargs["world_model"] = str(Path(world_model).resolve())
-        kwargs["imagined_points"] = payload["policy_config"]["num_points"]  # what the policy reads
-        imagined = VARIANTS[payload["policy_config"]["algo"]].imagined
+        policy = payload["policy_config"]
+        kwargs["imagined_points"] = policy.get("imagined_points") or policy["num_points"]  # what the policy reads
+        imagined = VARIANTS[policy["algo"]].imagined
         if imagined != "future":
             kwargs["imagined_output"] = imagined
     return kwargs

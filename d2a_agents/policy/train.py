@@ -191,7 +191,8 @@ def training_frames(
 ) -> TensorDict:
     """In-memory frames for the windows: the observations the policy reads (clouds
     subsampled to ``config.num_points`` by FPS) and, for imagination variants, the world
-    model's imagined cloud of every step."""
+    model's imagined cloud of every step (or ``d2a-present``'s own copy of the present), at
+    ``config.imagined_point_count``."""
     frames = dataset.frames()
     state_key = config.encoder.state_key
     data = {state_key: torch.as_tensor(frames[state_key]).float(), "action": torch.as_tensor(frames["action"]).float(),
@@ -205,8 +206,11 @@ def training_frames(
         imagined = []
         for row in tqdm(range(len(table)), desc="imagining", disable=not progress):
             cloud = imaginer(frames["point_cloud"][table.rows[row]], table.past_actions(torch.tensor(row)))
-            imagined.append(subsample_cloud(torch.as_tensor(cloud), config.num_points))
+            imagined.append(subsample_cloud(torch.as_tensor(cloud), config.imagined_point_count))
         data[IMAGINED_KEY] = torch.stack(imagined)
+    elif IMAGINED_KEY in config.observation_keys:  # d2a-present with a point count of its own
+        data[IMAGINED_KEY] = torch.stack(
+            [subsample_cloud(c, config.imagined_point_count) for c in torch.as_tensor(frames["point_cloud"])])
     return TensorDict(data, batch_size=[len(data["action"])])
 
 
@@ -334,7 +338,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     if uses_imagination(config.policy.algo) and config.world_model is None:
         raise ValueError(f"algo {config.policy.algo!r} imagines the future: pass --world-model")
     # The imagined cloud at the policy's point count, as the env serves it when acting (eval_env_kwargs).
-    imaginer = (Imaginer.from_checkpoint(config.world_model, num_points=config.policy.num_points,
+    imaginer = (Imaginer.from_checkpoint(config.world_model, num_points=config.policy.imagined_point_count,
                                          output=config.policy.variant.imagined)
                 if uses_imagination(config.policy.algo) else None)
     if imaginer is not None and not set(dataset.metadata.tasks) <= set(imaginer_tasks(config.world_model)):
