@@ -56,6 +56,10 @@ class CollectConfig:
         append: add to an existing data set (resuming an interrupted collection).
         overwrite: replace an existing data set.
         progress: show a progress bar.
+        action_noise: std of Gaussian noise added to the expert's actions (0: demonstrations);
+            with ``keep_failures`` the rollouts off the demonstrated states that a world model
+            can learn from beside the demonstrations.
+        keep_failures: store every attempt (``episodes`` then counts attempts), not only successes.
         ray_address: run the attempts on Ray (``"local"``, ``"auto"`` or a cluster address);
             ``None``: in this process.
     """
@@ -71,6 +75,8 @@ class CollectConfig:
     overwrite: bool = False
     progress: bool = True
     ray_address: str | None = None
+    action_noise: float = 0.0
+    keep_failures: bool = False
 
 
 def _open_output(config: CollectConfig) -> DemoDataset:
@@ -98,6 +104,11 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
         if record.task != task:
             continue
         if record.seed == config.seed:
+            if (record.action_noise, record.keep_failures) != (config.action_noise, config.keep_failures):
+                raise DatasetError(
+                    f"{dataset.directory}: the {task} collection of seed {config.seed} used action noise "
+                    f"{record.action_noise} and keep_failures={record.keep_failures}; resume it with those, or pass "
+                    "another --seed")
             return record
         # The attempts this run may make must not reuse a seed: that would store an episode twice.
         last = config.seed + config.episodes * config.max_attempts_factor - 1
@@ -107,7 +118,8 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
                 f"{record.seed + record.attempts - 1}, already used for {task}; pass --seed {record.seed} to resume "
                 f"that collection or a seed from {record.seed + record.attempts} on"
             )
-    record = CollectionRecord(task=task, seed=config.seed)
+    record = CollectionRecord(task=task, seed=config.seed, action_noise=config.action_noise,
+                              keep_failures=config.keep_failures)
     dataset.metadata.collections.append(record)
     return record
 
@@ -127,23 +139,23 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
     env_kwargs = {**_env_kwargs(config), **expert_env_kwargs(spec.name)}  # the expert's extra input is not stored
     first_seed = record.seed + record.attempts
     if config.ray_address is None:
-        rollouts = _expert_episodes(spec.name, env_kwargs, first_seed, config.max_episode_steps)
+        rollouts = _expert_episodes(spec.name, env_kwargs, first_seed, config.max_episode_steps, config.action_noise)
     else:
         rollouts = _expert_episodes_on_ray(spec.name, env_kwargs, first_seed, config.max_episode_steps,
-                                           config.ray_address)
+                                           config.ray_address, config.action_noise)
     bar = tqdm(total=config.episodes, initial=record.kept, desc=f"{spec.name} demos", disable=not config.progress)
     try:
         for rollout in rollouts:
             episode_seed = int(rollout["episode_seed"][0])
             record.attempts = episode_seed - record.seed + 1
             success = bool(rollout["next", "success"].any())
-            if success:
+            if success or config.keep_failures:
                 index = len(dataset.metadata.episodes)
                 record.kept += 1  # before add_episode: its metadata write commits the episode and the count together
                 dataset.add_episode(
                     episode_frames(rollout, index),
                     EpisodeRecord(
-                        index=index, task=spec.name, start=0, length=0, success=True,
+                        index=index, task=spec.name, start=0, length=0, success=success,
                         episode_return=float(rollout["next", "reward"].sum()), collection=collection_index,
                         attempt=episode_seed - record.seed, min_points_in_crop=int(rollout["num_points_in_crop"].min()),
                     ),
@@ -163,11 +175,12 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
 
 
 def _expert_episodes(task: str, env_kwargs: dict[str, Any], first_seed: int, max_steps: int,
-                     ) -> Iterator[TensorDictBase]:
+                     action_noise: float = 0.0) -> Iterator[TensorDictBase]:
     """The expert's episodes with seeds ``first_seed``, ``first_seed + 1``, ... (one rollout each)."""
     env = make_torchrl_env(task, env_kwargs, seed=first_seed)
     collector = Collector(
-        env, make_expert(task), frames_per_batch=max_steps, trajs_per_batch=1, traj_format="cat", total_frames=-1,
+        env, make_expert(task, action_noise), frames_per_batch=max_steps, trajs_per_batch=1, traj_format="cat",
+        total_frames=-1,
         auto_register_policy_transforms=False,  # the expert keeps its own state: leave the env as it is
     )
     try:
@@ -176,9 +189,10 @@ def _expert_episodes(task: str, env_kwargs: dict[str, Any], first_seed: int, max
         collector.shutdown()
 
 
-def _expert_episode(task: str, env_kwargs: dict[str, Any], seed: int, max_steps: int) -> TensorDictBase:
+def _expert_episode(task: str, env_kwargs: dict[str, Any], seed: int, max_steps: int,
+                    action_noise: float = 0.0) -> TensorDictBase:
     """One Ray job: the expert's episode of ``seed`` (module-level: Ray imports it)."""
-    episodes = _expert_episodes(task, env_kwargs, seed, max_steps)
+    episodes = _expert_episodes(task, env_kwargs, seed, max_steps, action_noise)
     try:
         return next(episodes)
     finally:
@@ -186,9 +200,9 @@ def _expert_episode(task: str, env_kwargs: dict[str, Any], seed: int, max_steps:
 
 
 def _expert_episodes_on_ray(task: str, env_kwargs: dict[str, Any], first_seed: int, max_steps: int,
-                            address: str) -> Iterator[TensorDictBase]:
+                            address: str, action_noise: float = 0.0) -> Iterator[TensorDictBase]:
     """:func:`_expert_episodes` with every episode a Ray job, yielded in seed order."""
-    jobs = ((task, env_kwargs, seed, max_steps) for seed in itertools.count(first_seed))
+    jobs = ((task, env_kwargs, seed, max_steps, action_noise) for seed in itertools.count(first_seed))
     arrived: dict[int, TensorDictBase] = {}
     following = 0
     with contextlib.closing(as_completed(_expert_episode, jobs, address)) as outcomes:  # closing cancels the rest
@@ -212,6 +226,8 @@ def collect(config: CollectConfig) -> DemoDataset:
         make_expert(spec.name)  # a task without an expert fails here
     if config.max_episode_steps < 1 or config.max_attempts_factor < 1:
         raise ValueError("max_episode_steps and max_attempts_factor must be at least 1")
+    if not config.action_noise >= 0:
+        raise ValueError(f"action_noise must be a standard deviation >= 0, not {config.action_noise}")
     # Bad env settings (num_points 0, an unknown camera...) fail here, before the output
     # directory is touched: --overwrite must not wipe a data set for a run that cannot start.
     gym.make(specs[0].env_id, **_env_kwargs(config)).close()
@@ -220,6 +236,7 @@ def collect(config: CollectConfig) -> DemoDataset:
         dataset = _open_output(config)
         for spec in specs:
             record = collect_task(dataset, spec.name, config)
-            print(f"{spec.name}: kept {record.kept} successful episodes of {record.attempts} tried "
-                  f"(seed {record.seed})")
+            kept = "episodes" if config.keep_failures else "successful episodes"
+            noise = f", action noise {config.action_noise}" if config.action_noise else ""
+            print(f"{spec.name}: kept {record.kept} {kept} of {record.attempts} tried (seed {record.seed}{noise})")
     return dataset

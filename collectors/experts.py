@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from metaworld.policies import ENV_POLICY_MAP
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 
 import d2a_envs
 from collectors.adroit_experts import AdroitExpert
@@ -47,10 +47,35 @@ class ScriptedExpert(TensorDictModuleBase):
         return tensordict
 
 
-def make_expert(task: str) -> TensorDictModuleBase:
-    """The expert of ``task``: Meta-World's scripted policy or the Adroit planner."""
+class ActionNoise(TensorDictModuleBase):
+    """Adds Gaussian noise of standard deviation ``std`` to ``action`` (clipped to [-1, 1]).
+
+    The noise of a step depends only on its episode's seed and step count, so a noisy
+    collection is reproducible and resumes exactly, on any worker.
+    """
+
+    def __init__(self, std: float) -> None:
+        super().__init__()
+        if not std >= 0:
+            raise ValueError(f"action noise must be a standard deviation >= 0, not {std}")
+        self.std = std
+        self.in_keys, self.out_keys = ["action", "episode_seed", "step_count"], ["action"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action")
+        seed = int(tensordict.get("episode_seed").reshape(-1)[0])
+        step = int(tensordict.get("step_count").reshape(-1)[0])
+        noise = np.random.default_rng([seed, step]).normal(0.0, self.std, size=tuple(action.shape))
+        tensordict.set("action", (action + torch.as_tensor(noise, dtype=action.dtype)).clamp(-1.0, 1.0))
+        return tensordict
+
+
+def make_expert(task: str, action_noise: float = 0.0) -> TensorDictModuleBase:
+    """The expert of ``task``: Meta-World's scripted policy or the Adroit planner; with
+    ``action_noise``, its actions perturbed by :class:`ActionNoise` (what it then executes)."""
     spec = d2a_envs.get_task(task)
-    return AdroitExpert(spec.name) if spec.suite == "adroit" else ScriptedExpert(spec.name)
+    expert = AdroitExpert(spec.name) if spec.suite == "adroit" else ScriptedExpert(spec.name)
+    return TensorDictSequential(expert, ActionNoise(action_noise)) if action_noise else expert
 
 
 def expert_env_kwargs(task: str) -> dict[str, Any]:

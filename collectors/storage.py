@@ -66,6 +66,13 @@ class CollectionRecord:
     seed: int
     attempts: int = 0
     kept: int = 0
+    action_noise: float = 0.0  # std of the noise added to the expert's actions (0: demonstrations)
+    keep_failures: bool = False  # every attempt stored, not only the successes
+
+    @property
+    def rollouts(self) -> bool:
+        """Whether this collection holds rollouts (noisy or failed), not demonstrations."""
+        return self.action_noise > 0 or self.keep_failures
 
 
 @dataclass
@@ -237,6 +244,22 @@ class DemoDataset:
         """Whether ``demos`` episodes per task are every episode (``None``: all of them, trivially):
         a trainer asked for them records the run as one on the whole data set."""
         return demos is None or set(self.episode_counts().values()) == {demos}
+
+    def rollout_episodes(self) -> list[int]:
+        """Ids of the episodes of rollout collections (noisy or kept failures): no policy trains on them."""
+        return [e.index for e in self.metadata.episodes if self.metadata.collections[e.collection].rollouts]
+
+    def demonstrations(self) -> DemoDataset:
+        """A read-only view without the rollout episodes (the data set itself when it has none);
+        they must follow the demonstrations in the storage (collect rollouts after them)."""
+        rollouts = set(self.rollout_episodes())
+        if not rollouts:
+            return self
+        episodes = [e for e in self.metadata.episodes if e.index not in rollouts]
+        if episodes != self.metadata.episodes[: len(episodes)]:
+            raise DatasetError(f"{self.directory}: rollouts were collected before demonstrations; collect the "
+                               "demonstrations first")
+        return DemoDataset(self.directory, replace(self.metadata, episodes=episodes), self.buffer)
 
     def first_episodes(self, demos: int) -> DemoDataset:
         """A read-only view of the first ``demos`` episodes of each task, so that runs on 1, 2,

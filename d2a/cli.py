@@ -150,7 +150,8 @@ def cmd_collect(args: argparse.Namespace) -> None:
         CollectConfig(tasks=tuple(args.task), out=args.out, env_kwargs=_env_kwargs(args), append=args.append,
                       overwrite=args.overwrite, ray_address=args.ray),
         episodes=args.episodes, seed=args.seed, max_attempts_factor=args.max_attempts_factor,
-        max_episode_steps=args.max_episode_steps,
+        max_episode_steps=args.max_episode_steps, action_noise=args.action_noise,
+        keep_failures=True if args.keep_failures else None,
     )
     dataset = collect(config)
     print(f"wrote {dataset.num_frames} steps in {len(dataset.metadata.episodes)} episodes to {dataset.directory}")
@@ -248,6 +249,7 @@ def cmd_train_wm(args: argparse.Namespace) -> None:
         TrainWorldModelConfig(data=args.data, out=args.out, model=model), steps=args.steps,
         batch_size=args.batch_size, learning_rate=args.lr, queries=args.queries, validate_every=args.validate_every,
         seed=args.seed, device=args.device, threads=args.threads, demos=args.demos,
+        with_rollouts=True if args.with_rollouts else None,
     )
     _, history = train_world_model(config)
     if history:
@@ -492,6 +494,10 @@ def build_parser() -> argparse.ArgumentParser:
     collect.add_argument("--out", required=True, help="data set directory")
     collect.add_argument("--max-attempts-factor", type=POSITIVE, default=None, help="give up after episodes x this")
     collect.add_argument("--max-episode-steps", type=POSITIVE, default=None)
+    collect.add_argument("--action-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
+                         help="Gaussian noise added to the expert's actions: rollouts for a world model, never "
+                              "trained on by policies (with --keep-failures)")
+    collect.add_argument("--keep-failures", action="store_true", help="store every attempt, not only successes")
     mode = collect.add_mutually_exclusive_group()
     mode.add_argument("--append", action="store_true", help="add to (or resume) an existing data set")
     mode.add_argument("--overwrite", action="store_true", help="replace an existing data set")
@@ -514,6 +520,8 @@ def build_parser() -> argparse.ArgumentParser:
                           help="volume-conv: Conv3d over the grid (the paper); point-scatter: per-voxel MLP "
                                "scattered onto the planes, cost follows the occupied voxels")
     train_wm.add_argument("--demos", type=POSITIVE, default=None, help=DEMOS_HELP)
+    train_wm.add_argument("--with-rollouts", action="store_true",
+                          help="also train on the data set's rollouts (d2a collect --action-noise --keep-failures)")
     train_wm.add_argument("--steps", type=POSITIVE, default=None)
     train_wm.add_argument("--batch-size", type=POSITIVE, default=None)
     train_wm.add_argument("--lr", type=float, default=None)

@@ -330,7 +330,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     if config.threads:
         torch.set_num_threads(config.threads)
     device = torch.device(config.device)
-    dataset = DemoDataset.open_for_training(config.data)
+    dataset = DemoDataset.open_for_training(config.data).demonstrations()  # never the rollouts of a world model
     if dataset.holds_exactly(config.demos):
         config = dataclasses.replace(config, demos=None)  # every episode: recorded as a run on the whole set
     else:

@@ -52,6 +52,9 @@ class TrainWorldModelConfig:
     focal_gamma: float = 2.0
     holdout_fraction: float = 0.2
     demos: int | None = None  # train on the first demos episodes of each task (None: all but the held-out ones)
+    # Also train on the data set's rollouts (noisy expert episodes, kept whole: d2a collect
+    # --action-noise --keep-failures), states off the demonstrations a policy may reach.
+    with_rollouts: bool = False
     validate_every: int = 500
     validation_stride: int = 5  # evaluate every k-th held-out transition
     checkpoint_every: int = 100
@@ -188,7 +191,8 @@ def _train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldMode
     if config.threads:
         torch.set_num_threads(config.threads)
     device = torch.device(config.device)
-    dataset = DemoDataset.open_for_training(config.data)
+    full = DemoDataset.open_for_training(config.data)
+    dataset = full.demonstrations()
     if dataset.holds_exactly(config.demos):
         config = dataclasses.replace(config, demos=None)  # every episode: recorded as a run on the whole set
     box = CropBox.from_any(config.crop_box) if config.crop_box is not None else dataset_crop_box(dataset)
@@ -197,7 +201,13 @@ def _train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldMode
     model_config = dataclasses.replace(config.model, action_dim=action_dim)
     config = dataclasses.replace(config, model=model_config)
     train_ids, held_out_ids = split_episodes(dataset, config.holdout_fraction, config.demos)
-    frames = dataset.frames()
+    if config.with_rollouts:
+        rollouts = full.rollout_episodes()
+        if not rollouts:
+            raise ValueError(f"{config.data} holds no rollouts: collect them with d2a collect --action-noise "
+                             "--keep-failures --append")
+        train_ids += rollouts
+    frames = full.frames()
     train = WorldModelTransitions(frames, grid, model_config.horizon, model_config.action_history, train_ids)
     held_out = WorldModelTransitions(frames, grid, model_config.horizon, model_config.action_history, held_out_ids)
     if config.batch_size > len(train):
