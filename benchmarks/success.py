@@ -73,6 +73,7 @@ PAPER_REFERENCE = {
 
 
 DEFAULT_DEMOS = 10  # the paper's Table I count; cells of another count carry it in their names
+ROLLOUT_SEED = 50_000  # first layout of the world model's rollouts: apart from demonstrations and evaluations
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,10 @@ class SuccessBenchConfig:
     # counts collects the largest once, so that 1 of 2 of 5 ... are nested and each world model
     # trains on its policies' demonstrations and validates on the ones after them.
     pool: int | None = None
+    # Noisy expert rollouts per task (kept whole, seeds from ROLLOUT_SEED) that the world model
+    # trains on beside the demonstrations (0: none); imagining cells then carry ``_wmr<N>``.
+    wm_rollouts: int = 0
+    rollout_noise: float = 0.3
     workdir: str = "outputs/bench_success"
     cells: str | None = None  # directory of the finished cells' files (default: <workdir>/cells)
     policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget of every variant
@@ -190,13 +195,20 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
         env_kwargs=config.env_kwargs,
         progress=config.ray_address is None, ray_address=config.ray_address,
     )), f"{task} demonstrations")
+    if config.wm_rollouts:
+        _when_free(lambda: collect(CollectConfig(
+            tasks=(task,), out=str(data), episodes=config.wm_rollouts, seed=ROLLOUT_SEED, append=True,
+            env_kwargs=config.env_kwargs, action_noise=config.rollout_noise, keep_failures=True,
+            progress=config.ray_address is None, ray_address=config.ray_address,
+        )), f"{task} rollouts")
     return data
 
 
 def _world_model(config: SuccessBenchConfig, task: str, data: Path, device: str = "cpu") -> Path:
-    path = Path(config.workdir) / "world_models" / f"{task}{_demos_tag(config)}.pt"
+    path = Path(config.workdir) / "world_models" / f"{task}{_demos_tag(config)}{_rollouts_tag(config)}.pt"
     _when_free(lambda: train_world_model(TrainWorldModelConfig(
         data=str(data), out=str(path), model=config.world_model, steps=config.world_model_steps, demos=config.demos,
+        with_rollouts=config.wm_rollouts > 0,
         validate_every=config.world_model_steps, seed=0, device=device, threads=config.threads,
         progress=config.ray_address is None,
     )), f"{task} world model")  # resumes, or returns at once when the checkpoint is finished
@@ -251,7 +263,13 @@ def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> s
     of 5 and of 15 evaluations, on fixed or fresh layouts, of one budget or another, share a
     workdir (its data and world models) without one being read back as another."""
     fresh = "_fresh" if config.eval_layouts == "fresh" else ""
-    return f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_demos_tag(config)}{_preset_tag(config.policy)}"
+    rollouts = _rollouts_tag(config) if uses_imagination(algo) else ""
+    return (f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_demos_tag(config)}{rollouts}"
+            f"{_preset_tag(config.policy)}")
+
+
+def _rollouts_tag(config: SuccessBenchConfig) -> str:
+    return f"_wmr{config.wm_rollouts}n{config.rollout_noise:g}" if config.wm_rollouts else ""
 
 
 def _demos_tag(config: SuccessBenchConfig) -> str:

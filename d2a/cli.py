@@ -400,6 +400,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         workdir=args.workdir, workers=args.workers, env_kwargs=env_kwargs or None, world_model=world_model,
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
         eval_layouts=args.eval_layouts, demos=args.demos, pool=args.pool, cells=args.cells,
+        wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise,
     ))
 
 
@@ -732,6 +733,10 @@ def build_parser() -> argparse.ArgumentParser:
                                help="demo: 32x32x8 Conv3d (the cpu preset's); cpu: d2a train-wm's 128x128x32 "
                                     "point-scatter (default: the preset's)")
     bench_success.add_argument("--wm-steps", type=POSITIVE, default=None, help="world-model training steps")
+    bench_success.add_argument("--wm-rollouts", type=NON_NEGATIVE, default=None,
+                               help="noisy expert rollouts per task the world model also trains on (default 0)")
+    bench_success.add_argument("--rollout-noise", type=NON_NEGATIVE_FLOAT, default=None,
+                               help="std of their action noise (default 0.3)")
     bench_success.add_argument("--workdir", default=None,
                                help="data, models and finished cells; a rerun resumes")
     bench_success.add_argument("--cells", default=None,

@@ -113,3 +113,10 @@ def test_cells_of_another_demonstration_count_are_named_apart():
     five = dataclasses.replace(ten, demos=5)
     assert bench._cell_name(ten, "push", "mp1", 0) == "push_mp1_s0_e15_fresh"  # the names of cells stored before
     assert bench._cell_name(five, "push", "mp1", 0) == "push_mp1_s0_e15_fresh_d5"
+
+
+def test_imagining_cells_of_a_world_model_with_rollouts_are_named_apart():
+    plain = SuccessBenchConfig(evaluations=15, eval_layouts="fresh", demos=5)
+    rollouts = dataclasses.replace(plain, wm_rollouts=20)
+    assert bench._cell_name(rollouts, "push", "d2a", 0) == "push_d2a_s0_e15_fresh_d5_wmr20n0.3"
+    assert bench._cell_name(rollouts, "push", "mp1", 0) == bench._cell_name(plain, "push", "mp1", 0)  # no world model

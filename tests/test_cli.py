@@ -264,6 +264,8 @@ def test_demos_reach_the_trainers_and_the_bench(captured):
     assert captured["config"].demos is None  # every episode
     main(["train-policy", "--data", "d", "--out", "o", "--imagined-points", "256"])
     assert captured["config"].policy.imagined_points == 256
+    main(["bench", "success", "--wm-rollouts", "20", "--rollout-noise", "0.5"])
+    assert (captured["config"].wm_rollouts, captured["config"].rollout_noise) == (20, 0.5)
     main(["bench", "success", "--imagined-points", "256"])
     assert captured["config"].policy.policy.imagined_points == 256 and captured["config"].policy.policy.num_points == 64
 
