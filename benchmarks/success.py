@@ -62,7 +62,7 @@ from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, evaluate_checkpoint
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
-from d2a_agents.world_model.triplane import WorldModelConfig
+from d2a_agents.world_model.triplane import CPU_PRESET, WorldModelConfig
 
 # The paper's MP1 / D2A success (%): Table IV (Meta-World, 10 demonstrations; no Hammer
 # column) and Table I's Adroit columns.
@@ -123,8 +123,6 @@ def paper_table_cells(workdir: str) -> SuccessBenchConfig:
     """The per-cell settings of the paper-table grids (``d2a bench table1`` / ``table4``): the
     ``cpu`` policy preset on dense clouds, new layouts at each periodic evaluation as the
     paper's runners, the 128x128x32 world model of 2000 steps for the imagining variants."""
-    from d2a_agents.world_model.triplane import CPU_PRESET
-
     return SuccessBenchConfig(tasks=(), algos=(), seeds=(), workdir=workdir, env_kwargs=DENSE_CLOUDS,
                               eval_layouts="fresh", world_model=CPU_PRESET, world_model_steps=2000)
 
