@@ -4,33 +4,43 @@ The experts read the simulator state, so the point clouds are made small (64 px,
 they cost time and the expert ignores them. For every task below 100 %, the failing
 episodes are run again with a longer limit (same seeds, so the same layouts and, the
 experts being deterministic, the same first 200 steps) and one that still fails is looked
-at (Meta-World): how close the hand got to the object and the object to the goal. Last, the same
-episodes are evaluated in one process and with ``workers`` processes, side by side.
+at (Meta-World): how close the hand got to the object and the object to the goal. With
+``imitation_demos``, the learnability check: ``mp1-state`` (the action expert on the simulator
+state, so perception plays no part) trained on that many of the expert's demonstrations and
+evaluated on ``imitation_episodes`` new layouts; an expert whose actions are not a function of
+the state shows a wide gap. Last, the same episodes are evaluated in one process and with
+``workers`` processes, side by side.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import os
 import statistics
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import torch
 from tqdm import tqdm
 
 import d2a_envs
+from collectors.collect import CollectConfig, collect
 from collectors.envs import STATE_KEY, make_torchrl_env
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
 from collectors.experts import expert_env_kwargs, make_expert
 from collectors.ray_jobs import ray_connection
+from d2a_agents.policy.checkpoints import evaluate_checkpoint
+from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 from d2a_envs.tasks import DIFFICULTIES
 
 # Meta-World v3 state layout: hand xyz, gripper opening, first object xyz + quaternion, ...,
 # goal xyz in the last three entries.
 _HAND, _OBJECT, _GOAL = slice(0, 3), slice(4, 7), slice(36, 39)
 _REACHED = 0.05  # metres: the hand "reaches" the object within this distance
+IMITATION_SEED = 100_000  # the learnability check's layouts, apart from the expert's and the demonstrations'
 
 
 @dataclass(frozen=True)
@@ -64,6 +74,25 @@ class ExpertBenchConfig:
     speedup_episodes: tuple[int, ...] = (5, 20)
     progress: bool = True
     ray_address: str | None = None
+    imitation_demos: int = 0  # 0: no learnability check
+    imitation_episodes: int = 100
+    imitation_steps: int = POLICY_PRESETS["cpu"].steps
+    workdir: str = "outputs/bench_experts"  # the check's demonstrations and policies
+
+
+def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
+    """``mp1-state`` trained (``cpu`` preset, one thread) on ``imitation_demos`` of the expert's
+    demonstrations of ``task``, its final checkpoint on ``imitation_episodes`` new layouts."""
+    data = Path(config.workdir) / "data" / task
+    collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.imitation_demos, append=True,
+                          env_kwargs=config.env_kwargs, progress=False))
+    preset = POLICY_PRESETS["cpu"]
+    run = Path(config.workdir) / "runs" / f"{task}_mp1-state_d{config.imitation_demos}"
+    train_policy(TrainPolicyConfig.from_preset(
+        preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo="mp1-state"),
+        steps=config.imitation_steps, demos=config.imitation_demos, eval_episodes=0, threads=1, progress=False))
+    return evaluate_checkpoint(run, task, config.imitation_episodes, IMITATION_SEED, workers=config.workers,
+                               end_on_success=True, progress=False, ray_address=config.ray_address)
 
 
 def _expert(task: str) -> functools.partial:
@@ -148,11 +177,12 @@ def _run(config: ExpertBenchConfig) -> list[dict[str, object]]:
         )
         results.append(result)
         steps = [step for step in result.success_steps if step is not None]
+        imitation = imitation_success(config, task) if config.imitation_demos else None
         rows.append(dict(
             task=result.task, difficulty=d2a_envs.get_task(task).difficulty or "-",
             successes=sum(result.successes), episodes=result.episodes, rate=result.success_rate,
             mean_return=result.mean_return, median_step=statistics.median(steps) if steps else None,
-            seconds=result.seconds,
+            seconds=result.seconds, imitation=imitation,
         ))
 
     last_seed = config.seed + config.episodes - 1
@@ -160,13 +190,20 @@ def _run(config: ExpertBenchConfig) -> list[dict[str, object]]:
         f"\nExperts, {config.episodes} episodes per task (seeds {config.seed}..{last_seed}),"
         f" {config.max_steps} steps, env {config.env_kwargs}, {config.workers} workers\n"
     )
-    print("| task | difficulty | success | mean return | median first-success step |")
-    print("| --- | --- | --- | --- | --- |")
+    imitation_header = (f" mp1-state on {config.imitation_demos} demonstrations [95 %] | of the expert's |"
+                        if config.imitation_demos else "")
+    print("| task | difficulty | success | mean return | median first-success step |" + imitation_header)
+    print("| --- | --- | --- | --- | --- |" + (" --- | --- |" if config.imitation_demos else ""))
     for row in rows:
         step = "-" if row["median_step"] is None else f"{row['median_step']:g}"
+        imitation = ""
+        if row["imitation"] is not None:
+            rate, low, high = honest_protocol(row["imitation"].successes)
+            share = f"{100 * rate / row['rate']:.0f} %" if row["rate"] else "-"
+            imitation = f" {100 * rate:.0f} % [{100 * low:.0f}-{100 * high:.0f}] | {share} |"
         print(
             f"| {row['task']} | {row['difficulty']} | {row['successes']}/{row['episodes']} = {100 * row['rate']:.0f} % "
-            f"| {row['mean_return']:.1f} | {step} |"
+            f"| {row['mean_return']:.1f} | {step} |" + imitation
         )
     all_outcomes = [success for result in results for success in result.successes]
     mean, low, high = honest_protocol(all_outcomes)

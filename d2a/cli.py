@@ -320,7 +320,8 @@ def cmd_bench_experts(args: argparse.Namespace) -> None:
 
     base = ExpertBenchConfig()
     run(_replace_given(base, tasks=tuple(args.task) if args.task else None, episodes=args.episodes,
-                       workers=args.workers, ray_address=args.ray))
+                       workers=args.workers, ray_address=args.ray, imitation_demos=args.imitation_demos,
+                       imitation_episodes=args.imitation_episodes, workdir=args.workdir))
 
 
 def cmd_bench_latency(args: argparse.Namespace) -> None:
@@ -638,6 +639,11 @@ def build_parser() -> argparse.ArgumentParser:
     bench_experts.add_argument("--task", action="append", default=None, help="default: all 50 Meta-World tasks")
     bench_experts.add_argument("--episodes", type=POSITIVE, default=None)
     bench_experts.add_argument("--workers", type=POSITIVE, default=None)
+    bench_experts.add_argument("--imitation-demos", type=NON_NEGATIVE, default=None,
+                               help="the learnability check: mp1-state trained on this many demonstrations (0: off)")
+    bench_experts.add_argument("--imitation-episodes", type=POSITIVE, default=None,
+                               help="its evaluation episodes on new layouts (default 100)")
+    bench_experts.add_argument("--workdir", default=None, help="the check's data and policies")
     _add_ray_option(bench_experts)
     bench_experts.set_defaults(func=cmd_bench_experts)
 

@@ -1,0 +1,18 @@
+"""The learnability check of ``d2a bench experts``: mp1-state on the expert's demonstrations."""
+
+from __future__ import annotations
+
+from benchmarks.experts import IMITATION_SEED, ExpertBenchConfig, imitation_success
+from collectors.storage import DemoDataset
+from d2a_agents.checkpoint import load_checkpoint
+from d2a_agents.policy.checkpoints import policy_file
+
+
+def test_imitation_trains_mp1_state_on_the_demonstrations_and_evaluates_new_layouts(tmp_path):
+    config = ExpertBenchConfig(tasks=("reach",), env_kwargs={"image_size": 32, "num_points": 32}, workers=1,
+                               imitation_demos=2, imitation_episodes=2, imitation_steps=2, workdir=str(tmp_path))
+    result = imitation_success(config, "reach")
+    assert result.episodes == 2 and result.seeds == [IMITATION_SEED, IMITATION_SEED + 1]
+    assert len(DemoDataset.open(tmp_path / "data" / "reach").metadata.episodes) == 2
+    payload = load_checkpoint(policy_file(tmp_path / "runs" / "reach_mp1-state_d2"), "policy")
+    assert payload["policy_config"]["algo"] == "mp1-state" and payload["step"] == 2
