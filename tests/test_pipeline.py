@@ -364,7 +364,8 @@ def test_bench_change_measures_every_cloud_on_held_out_transitions(reach_data, w
     with pytest.raises(ValueError, match="no episode after the first 2"):
         held_out_episodes(dataset, 2)
     result = run(ChangeBenchConfig(world_model=world_model, data=reach_data, demos=1, stride=3, num_points=16))
-    assert set(result) == {"imagined change", "observed change", "present", "true change"}
+    assert set(result) == {"imagined change", "imagined change, likeliest", "observed change", "present",
+                           "true change"}
     assert result["true change"]["precision"] == 0.0  # its points are the truth's own
     assert len({row["transitions"] for row in result.values()}) == 1 and result["present"]["transitions"] > 0
     assert all(0 <= row[key] < 1.0 for row in result.values() for key in ("precision", "coverage"))

@@ -691,6 +691,32 @@ def test_imaginer_change_output_holds_the_voxels_it_fills_that_are_empty_now():
         Imaginer(KnownFuture(still), grid, num_points=5, output="past")
 
 
+class GradedFuture(KnownFuture):
+    """KnownFuture with a logit per voxel: the likeliest voxels are known."""
+
+    def __init__(self, logits: torch.Tensor) -> None:
+        super().__init__(logits > 0)
+        self.logits = logits
+
+    def voxel_decoder(self, features: list[torch.Tensor]):
+        return lambda indices: self.logits[tuple(indices.T)]
+
+
+def test_imaginer_change_top_keeps_the_likeliest_filled_voxels():
+    """A 4 x 1 x 1 row: A = voxel 0 occupied now; the model fills 1, 2, 3 with logits 1, 5, 3.
+    With 2 points: change-top keeps voxels 2 and 3 (the likeliest), change samples all three apart."""
+    grid = VoxelGrid(CropBox((0.0, 0.0, 0.0), (4.0, 1.0, 1.0)), (4, 1, 1))
+    logits = torch.tensor([10.0, 1.0, 5.0, 3.0]).reshape(4, 1, 1)
+    cloud = torch.tensor([[0.5, 0.5, 0.5]])
+    top = Imaginer(GradedFuture(logits), grid, num_points=2, band=3, output="change-top")(cloud, torch.zeros(1, 4))
+    assert sorted(top[:, 0].tolist()) == [2.5, 3.5]
+    spread = Imaginer(GradedFuture(logits), grid, num_points=2, band=3, output="change")(cloud, torch.zeros(1, 4))
+    assert 1.5 in spread[:, 0].tolist()  # farthest-point sampling starts from the first filled voxel
+    # With more points than filled voxels, change-top holds every filled one.
+    every = Imaginer(GradedFuture(logits), grid, num_points=5, band=3, output="change-top")(cloud, torch.zeros(1, 4))
+    assert set(every[:, 0].tolist()) == {1.5, 2.5, 3.5}
+
+
 @pytest.mark.parametrize("mode, encoder, skip", [
     ("triplane", "point-scatter", True), ("xy", "point-scatter", True), ("triplane", "volume-conv", False),
     ("volume", "volume-conv", True),

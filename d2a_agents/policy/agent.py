@@ -6,6 +6,7 @@ Variants (``--algo``), all on the same encoders, network, data and evaluation:
 | --- | --- | --- | --- | --- |
 | ``d2a`` | MeanFlow, 1 step | cloud + ``agent_pos`` | yes | yes |
 | ``d2a-change`` | MeanFlow, 1 step | cloud + ``agent_pos`` | where it changes: the voxels it fills | yes |
+| ``d2a-change-top`` | MeanFlow, 1 step | cloud + ``agent_pos`` | the likeliest of those voxels | yes |
 | ``d2a-no-cfg`` | MeanFlow, 1 step | cloud + ``agent_pos`` | yes | no |
 | ``d2a-no-imagination`` | MeanFlow, 1 step | cloud + ``agent_pos`` | no | yes |
 | ``d2a-present`` | MeanFlow, 1 step | cloud + ``agent_pos`` | the current cloud again | yes |
@@ -63,6 +64,7 @@ class Variant:
 VARIANTS: dict[str, Variant] = {
     "d2a": Variant("meanflow", imagination="world-model", cfg=True),
     "d2a-change": Variant("meanflow", imagination="world-model", cfg=True, imagined="change"),
+    "d2a-change-top": Variant("meanflow", imagination="world-model", cfg=True, imagined="change-top"),
     "d2a-no-cfg": Variant("meanflow", imagination="world-model"),
     "d2a-no-imagination": Variant("meanflow", cfg=True),
     "d2a-present": Variant("meanflow", imagination="present", cfg=True),

@@ -4,6 +4,7 @@ stored demonstrations."""
 
 from __future__ import annotations
 
+import copy
 import statistics
 import time
 from pathlib import Path
@@ -83,19 +84,22 @@ def change_distances(
     On every ``stride``-th held-out transition t -> t + H with t >= H, the truth is the centres of
     the voxels occupied at t + H and empty at t (steps where nothing newly fills are skipped).
     Candidates, each at ``num_points`` points: ``imagined change`` (the world model's change
-    cloud), ``observed change`` (the voxels newly filled from t - H to t: motion continued, what
-    the observation history shows), ``present`` (the current cloud, FPS: what ``d2a-present``
-    reads) and ``true change`` (the truth itself resampled: the floor). Per candidate, the mean
+    cloud), ``imagined change, likeliest`` (its ``change-top`` cloud), ``observed change`` (the
+    voxels newly filled from t - H to t: motion continued, what the observation history shows),
+    ``present`` (the current cloud, FPS: what ``d2a-present`` reads) and ``true change`` (the
+    truth itself resampled: the floor). Per candidate, the mean
     distance (m) from it to the truth (``precision``: does it point where things go) and from
     the truth to it (``coverage``), averaged over the transitions; ``transitions`` counts them.
     """
     frames = dataset.frames()
     imaginer = Imaginer.from_checkpoint(checkpoint, num_points=num_points, output="change")
+    likeliest = copy.copy(imaginer)
+    likeliest.output = "change-top"
     grid, horizon = imaginer.grid, imaginer.config.horizon
     transitions = WorldModelTransitions(frames, grid, horizon, imaginer.config.action_history, episodes)
     steps = torch.as_tensor(frames["step"])
     rng = np.random.default_rng(0)
-    names = ("imagined change", "observed change", "present", "true change")
+    names = ("imagined change", "imagined change, likeliest", "observed change", "present", "true change")
     sums = {name: {"precision": 0.0, "coverage": 0.0} for name in names}
     count = 0
 
@@ -115,8 +119,10 @@ def change_distances(
         if len(truth) == 0:
             continue
         observed = newly_filled(past, cloud)
+        actions = transitions.past_actions(torch.tensor([position]))[0]
         candidates = {
-            "imagined change": torch.as_tensor(imaginer(cloud, transitions.past_actions(torch.tensor([position]))[0])),
+            "imagined change": torch.as_tensor(imaginer(cloud, actions)),
+            "imagined change, likeliest": torch.as_tensor(likeliest(cloud, actions)),
             "observed change": resample(observed if len(observed) else cloud),
             "present": resample(cloud),
             "true change": resample(truth),

@@ -18,8 +18,10 @@ CHECKPOINT_KIND = "world_model"
 IMAGINED_KEY = "imagined_point_cloud"  # the observation an imagining env adds
 # What the imagined cloud holds: "future", the cloud H steps ahead (the paper's P_{t+H});
 # "change", the voxels the model fills that are empty now (where something will be that is
-# not there yet), so that all of a small cloud lies on what moves.
-IMAGINED_OUTPUTS = ("future", "change")
+# not there yet), so that all of a small cloud lies on what moves; "change-top", the likeliest
+# of those only, as many as the cloud's points (farthest-point sampling would pick the
+# model's outliers first).
+IMAGINED_OUTPUTS = ("future", "change", "change-top")
 # The 26 voxels around a voxel (Chebyshev distance 1).
 NEIGHBOUR_OFFSETS = torch.stack(torch.meshgrid(*[torch.arange(-1, 2)] * 3, indexing="ij"), dim=-1).reshape(-1, 3)
 NEIGHBOUR_OFFSETS = NEIGHBOUR_OFFSETS[NEIGHBOUR_OFFSETS.abs().sum(dim=1) > 0]
@@ -106,6 +108,8 @@ class Imaginer:
     With ``output="change"`` the cloud holds only the centres of the voxels the model fills
     that are empty now; where it fills none, the empty decoded voxels it finds most likely
     (as many as the cloud's points), so the cloud always points where motion is likeliest.
+    ``output="change-top"`` keeps the likeliest of the filled ones, at most as many as the
+    cloud's points, instead of sampling them apart.
 
     Example:
         >>> imaginer = Imaginer.from_checkpoint("runs/hammer/wm.pt")
@@ -198,7 +202,7 @@ class Imaginer:
         actions = torch.as_tensor(np.asarray(past_actions), dtype=torch.float32).unsqueeze(0)
         current = self.grid.voxelize(cloud).unsqueeze(0)
         candidates, logits = self.decoded_voxels(current, self.model.encode(current, actions))
-        if self.output == "change":
+        if self.output != "future":
             return self._change(candidates, logits, current[0])
         occupied = candidates[logits > self.logit_threshold]
         if len(occupied) == 0:
@@ -208,10 +212,17 @@ class Imaginer:
         return sample_to_size(points.numpy(), self.num_points, self.rng).astype(np.float32)
 
     def _change(self, candidates: torch.Tensor, logits: torch.Tensor, current: torch.Tensor) -> np.ndarray:
-        """Centres of the decoded voxels empty now that the model fills (else its likeliest ones)."""
+        """Centres of the decoded voxels empty now that the model fills (all of them, or with
+        ``change-top`` the likeliest, at most ``num_points``); where it fills none, its likeliest ones."""
         empty = ~current[tuple(candidates.T)]
         candidates, logits = candidates[empty], logits[empty]
-        filled = candidates[logits > self.logit_threshold]
-        if len(filled) == 0:
-            filled = candidates[logits.topk(min(self.num_points, len(candidates))).indices]
-        return sample_to_size(self.grid.centres(filled).numpy(), self.num_points, self.rng).astype(np.float32)
+        filled = logits > self.logit_threshold
+        likeliest = logits.topk(min(self.num_points, len(candidates))).indices  # in falling order
+        if not filled.any():
+            chosen = likeliest
+        elif self.output == "change-top":
+            chosen = likeliest[filled[likeliest]]
+        else:
+            chosen = filled.nonzero().squeeze(1)
+        return sample_to_size(self.grid.centres(candidates[chosen]).numpy(), self.num_points,
+                              self.rng).astype(np.float32)
