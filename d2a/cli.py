@@ -202,8 +202,7 @@ def cmd_act(args: argparse.Namespace) -> None:
     task = args.task or payload["tasks"][0]
     env_kwargs = {k: v for k, v in payload["env_kwargs"][task].items() if k != "max_episode_steps"}
     env = gym.make(d2a_envs.get_task(task).env_id, **env_kwargs)
-    config = env.get_wrapper_attr("config")
-    cameras = SimCameras(env, config.cameras, config.image_size[0], config.backend)
+    cameras = SimCameras(env)
     robot = SimRobot(env, seed=args.seed)
     try:
         rate = {} if args.hz is None else {"hz": args.hz}

@@ -188,11 +188,14 @@ class SimRobot:
 
 
 class SimCameras:
-    """Named cameras of a D2A env's MuJoCo scene as RGB-D frames in the world (= base) frame."""
+    """A D2A env's cameras (its own, with its image size, backend and sites) as RGB-D frames in
+    the world (= base) frame."""
 
-    def __init__(self, env: gym.Env, cameras: tuple[str, ...], image_size: int = 128, backend: str = "raycast") -> None:
-        self.env, self.cameras = env, cameras
-        self.backend = make_depth_backend(backend, image_size, image_size, show_sites=True)
+    def __init__(self, env: gym.Env) -> None:
+        config = env.get_wrapper_attr("config")
+        self.env, self.cameras = env, config.cameras
+        height, width = config.image_size
+        self.backend = make_depth_backend(config.backend, width, height, config.show_sites)
 
     def frames(self) -> list[RGBDFrame]:
         base = self.env.unwrapped

@@ -45,7 +45,7 @@ class FakeClock:
 @pytest.fixture
 def sim():
     env = gym.make("D2A-MetaWorld-Reach-v0", **ENV_KWARGS)
-    robot, cameras = SimRobot(env, seed=3), SimCameras(env, ("corner4",), image_size=48)
+    robot, cameras = SimRobot(env, seed=3), SimCameras(env)
     yield env, robot, cameras
     cameras.close()
     env.close()
