@@ -52,7 +52,7 @@ def load_for_resume(
 
     Refuses one whose ``keys`` differ from ``expected`` (another model, grid, task list...):
     resuming it would silently mix two runs. In a dict, a name the checkpoint lacks counts as
-    ``None``: a setting added after it was written, left at ``None``, does what older code did.
+    off: a setting added after it was written, left at ``None`` or ``False``, does what older code did.
     """
     if not Path(path).exists():
         return None
@@ -60,7 +60,7 @@ def load_for_resume(
     for key in keys:
         old, new = previous.get(key), expected[key]
         if isinstance(old, dict) and isinstance(new, dict):
-            old = {**dict.fromkeys(new), **old}
+            old = {**{name: value if value is False else None for name, value in new.items()}, **old}
         if old != new:
             if isinstance(old, dict) and isinstance(new, dict):
                 differences = ", ".join(f"{name}: {old.get(name)!r} -> {new.get(name)!r}"
