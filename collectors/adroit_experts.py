@@ -1,12 +1,13 @@
-"""Adroit experts: predictive sampling on a copy of the scene, with hand-written costs.
+"""Adroit experts: a state-feedback controller or predictive sampling on a copy of the scene.
 
-Nothing can be downloaded here (DP3 and MP1 use pretrained VRL3 agents), so the Adroit
-demonstrations come from model-predictive control on the true simulator: the expert reads
-the env's ``physics`` observation (full MuJoCo state and the reset's layout), copies it into
-its planning copy of the scene and plans the next action
-(:mod:`collectors.predictive_sampling`). The costs are this module's own: gymnasium-robotics'
-dense rewards add +0.1 x the palm's distance to the handle or hammer, which pays for staying
-away.
+Nothing can be downloaded here (DP3 and MP1 use pretrained VRL3 agents). The expert reads
+the env's ``physics`` observation (full MuJoCo state and the reset's layout) and copies it
+into its own copy of the scene; there it either runs the task's controller
+(:mod:`collectors.adroit_controllers`: a deterministic function of the state, the default
+where one exists) or plans the next action by model-predictive control on the true
+simulator (:mod:`collectors.predictive_sampling`). The planners' costs are this module's
+own: gymnasium-robotics' dense rewards add +0.1 x the palm's distance to the handle or
+hammer, which pays for staying away.
 """
 
 from __future__ import annotations
@@ -18,10 +19,12 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 import d2a_envs
+from collectors.adroit_controllers import CONTROLLERS, ControllerReplica
 from collectors.predictive_sampling import PredictiveSampler, SamplingConfig, TaskCost, Trajectories, planning_model
 from d2a_envs.suites.adroit import AdroitEnv, set_physics
 
 PHYSICS_KEY = "physics"
+EXPERT_KINDS = ("controller", "planner")
 
 
 def _distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -84,13 +87,43 @@ EXPERTS = {
 }
 
 
+class _PlannerReplica:
+    """The planning model of one task (cost sensors added) and its planner, seeded per episode."""
+
+    def __init__(self, task: str) -> None:
+        scene = AdroitEnv(task, state_obs=False)
+        make_cost, config = EXPERTS[task]
+        cost = make_cost(scene.model)
+        self.task = task
+        self.model = planning_model(mujoco.MjSpec.from_file(scene.model_path), cost, config.planning_timestep)
+        self.data = mujoco.MjData(self.model)
+        physics_steps = max(1, round(scene.frame_skip * scene.model.opt.timestep / self.model.opt.timestep))
+        self.planner = PredictiveSampler(self.model, physics_steps, *scene.action_map, cost, config)
+        scene.close()
+
+    def act(self, physics: np.ndarray, step: int, seed: int) -> np.ndarray:
+        set_physics(self.model, self.data, self.task, physics)
+        if step == 0:
+            self.planner.reset(self.data, seed=seed)
+        return self.planner.plan(self.data)[0]
+
+
+class _ControllerReplica(ControllerReplica):
+    """A controller replica that takes (and ignores) the step and seed a planner needs."""
+
+    def act(self, physics: np.ndarray, step: int = 0, seed: int = 0) -> np.ndarray:
+        return super().act(physics)
+
+
 class AdroitExpert(TensorDictModuleBase):
-    """The planning expert of one Adroit task, as a TorchRL policy.
+    """The expert of one Adroit task, as a TorchRL policy: its controller (``kind="controller"``,
+    the default where the task has one) or its planner (``kind="planner"``).
 
     Reads ``physics`` (make the env with ``physics_obs=True``), ``step_count`` and
     ``episode_seed`` (:func:`collectors.envs.make_torchrl_env` provides both) and writes
-    ``action``. Each episode re-seeds the planner from its episode seed, so a seed gives the
-    same demonstration. Works on unbatched and batched tensordicts (a planner per env).
+    ``action``. A controller acts on the state alone; a planner is re-seeded from each
+    episode's seed, so a seed gives the same demonstration. Works on unbatched and batched
+    tensordicts (a replica of the scene per env).
 
     Example:
         >>> env = make_torchrl_env("adroit-door", {"physics_obs": True}, seed=0)
@@ -99,34 +132,32 @@ class AdroitExpert(TensorDictModuleBase):
         True
     """
 
-    def __init__(self, task: str) -> None:
+    def __init__(self, task: str, kind: str | None = None) -> None:
         super().__init__()
         spec = d2a_envs.get_task(task)
-        if spec.suite != "adroit" or spec.task not in EXPERTS:
-            raise ValueError(f"no planning expert for {spec.env_id}: experts exist for {sorted(EXPERTS)}")
-        self.task = spec.task
+        if spec.suite != "adroit":
+            raise ValueError(f"Adroit experts exist for Adroit tasks only, not {spec.env_id}")
+        kind = kind or default_expert_kind(spec.task)
+        if kind not in EXPERT_KINDS:
+            raise ValueError(f"unknown expert kind {kind!r}; choose one of {EXPERT_KINDS}")
+        if kind == "controller" and spec.task not in CONTROLLERS:
+            raise ValueError(f"no controller for {spec.env_id}: controllers exist for {sorted(CONTROLLERS)}; "
+                             "use the planner")
+        self.task, self.kind = spec.task, kind
         self.in_keys = [PHYSICS_KEY, "step_count", "episode_seed"]
         self.out_keys = ["action"]
-        self._replicas: list[tuple[mujoco.MjModel, mujoco.MjData, PredictiveSampler]] = []
+        self._replicas: list[_PlannerReplica | _ControllerReplica] = []
 
-    def _replica(self, index: int) -> tuple[mujoco.MjModel, mujoco.MjData, PredictiveSampler]:
-        """The planning model, its data and the planner of the ``index``-th env of a batch."""
+    def _replica(self, index: int) -> _PlannerReplica | _ControllerReplica:
+        """The replica of the scene of the ``index``-th env of a batch."""
+        make = _ControllerReplica if self.kind == "controller" else _PlannerReplica
         while len(self._replicas) <= index:
-            scene = AdroitEnv(self.task, state_obs=False)
-            make_cost, config = EXPERTS[self.task]
-            cost = make_cost(scene.model)
-            model = planning_model(mujoco.MjSpec.from_file(scene.model_path), cost, config.planning_timestep)
-            control_step = scene.frame_skip * scene.model.opt.timestep
-            physics_steps = max(1, round(control_step / model.opt.timestep))
-            mean, scale = scene.action_map
-            scene.close()
-            self._replicas.append((model, mujoco.MjData(model), PredictiveSampler(model, physics_steps, mean, scale,
-                                                                                   cost, config)))
+            self._replicas.append(make(self.task))
         return self._replicas[index]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if PHYSICS_KEY not in tensordict.keys():
-            raise KeyError(f"the {self.task} expert plans from {PHYSICS_KEY!r}: make the env with physics_obs=True "
+            raise KeyError(f"the {self.task} expert acts on {PHYSICS_KEY!r}: make the env with physics_obs=True "
                            f"(collectors.experts.expert_env_kwargs)")
         physics = tensordict.get(PHYSICS_KEY)
         batch = physics.shape[:-1]
@@ -135,11 +166,12 @@ class AdroitExpert(TensorDictModuleBase):
         seeds = tensordict.get("episode_seed").reshape(-1).tolist()
         actions = []
         for index, (vector, step, seed) in enumerate(zip(flat, steps, seeds, strict=True)):
-            model, data, planner = self._replica(index)
-            set_physics(model, data, self.task, vector)
-            if step == 0:
-                planner.reset(data, seed=int(seed))
-            actions.append(planner.plan(data)[0])
+            actions.append(self._replica(index).act(vector, int(step), int(seed)))
         action = torch.as_tensor(np.stack(actions), dtype=torch.float32).reshape(*batch, -1)
         tensordict.set(self.out_keys[0], action.to(physics.device))
         return tensordict
+
+
+def default_expert_kind(task: str) -> str:
+    """``controller`` where ``task`` (an Adroit task name: door, hammer, pen) has one, else ``planner``."""
+    return "controller" if task in CONTROLLERS else "planner"

@@ -323,6 +323,13 @@ def cmd_bench_experts(args: argparse.Namespace) -> None:
                        imitation_episodes=args.imitation_episodes, workdir=args.workdir))
 
 
+def cmd_bench_tune_expert(args: argparse.Namespace) -> None:
+    from benchmarks.tune_expert import TuneConfig, run
+
+    run(_replace_given(TuneConfig(), task=args.task, iterations=args.iterations, episodes=args.episodes,
+                       first_seed=args.first_seed, seed=args.seed, out=args.out))
+
+
 def cmd_bench_latency(args: argparse.Namespace) -> None:
     from benchmarks.latency import LatencyBenchConfig, run
 
@@ -645,6 +652,16 @@ def build_parser() -> argparse.ArgumentParser:
     bench_experts.add_argument("--workdir", default=None, help="the check's data and policies")
     _add_ray_option(bench_experts)
     bench_experts.set_defaults(func=cmd_bench_experts)
+
+    bench_tune = bench.add_parser("tune-expert", help="hill-climb an Adroit controller's settings on seeded "
+                                                      "episodes (success, then speed)")
+    bench_tune.add_argument("--task", default=None, help="default adroit-door")
+    bench_tune.add_argument("--iterations", type=NON_NEGATIVE, default=None, help="candidates tried (default 60)")
+    bench_tune.add_argument("--episodes", type=POSITIVE, default=None, help="tuning episodes per candidate (default 8)")
+    bench_tune.add_argument("--first-seed", type=NON_NEGATIVE, default=None, help="first tuning layout (default 1000)")
+    bench_tune.add_argument("--seed", type=NON_NEGATIVE, default=None, help="seed of the perturbations")
+    bench_tune.add_argument("--out", default=None, help="JSON of the accepted candidates")
+    bench_tune.set_defaults(func=cmd_bench_tune_expert)
 
     bench_latency = bench.add_parser("latency", help="batch-1 CPU latency: MeanFlow 1 NFE vs DDIM 10 NFE, imagination")
     bench_latency.add_argument("--task", default=None)

@@ -143,9 +143,10 @@ def test_the_planner_drives_a_servo_to_a_target_it_only_sees_through_the_cost():
 
 
 def _rollout(task: str, steps: int, seed: int = 0):
+    """A planner's rollout (the planners are this file's subject; controllers have their own)."""
     env = make_torchrl_env(task, EXPERT_ENV, seed=seed)
     with torch.no_grad():
-        rollout = env.rollout(steps, AdroitExpert(task))
+        rollout = env.rollout(steps, AdroitExpert(task, kind="planner"))
     env.close()
     return rollout
 
@@ -192,7 +193,7 @@ def test_experts_are_picked_per_suite_and_unknown_ones_refused():
     assert isinstance(make_expert("adroit-door"), AdroitExpert)
     assert type(make_expert("reach")).__name__ == "ScriptedExpert"
     assert expert_env_kwargs("adroit-hammer") == {"physics_obs": True} and expert_env_kwargs("reach") == {}
-    with pytest.raises(ValueError, match="no planning expert"):
+    with pytest.raises(ValueError, match="Adroit tasks only"):
         AdroitExpert("reach")
     with pytest.raises(ValueError, match="Meta-World tasks only"):
         from collectors.experts import ScriptedExpert

@@ -1,0 +1,225 @@
+"""Adroit controllers: state-feedback experts with a fixed grasp and phase logic.
+
+The planning experts (:mod:`collectors.adroit_experts`) succeed but take a different path in
+every episode, and ten such demonstrations do not pin down one behaviour a policy can
+imitate. A controller here is a deterministic function of the scene's state: its phase
+(reach, grasp, turn, pull...) follows from positions alone, its arm targets from damped
+least-squares inverse kinematics on the true model, so the same state always gets the same
+action, as from DP3's and MP1's trained RL agents.
+
+Adroit's actuators are position servos whose force is ``gain * ctrl - bias * q``; the arm's
+(gain 500, bias 200) hold ``q = 2.5 ctrl``, not ``ctrl``. :meth:`HandKinematics.action`
+converts joint-position targets into the controls that hold them against gravity, then into
+the env's normalised actions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from d2a_envs.suites.adroit import AdroitEnv, set_physics
+
+FINGER_FLEXION = tuple(f"{finger}J{joint}" for finger in ("FF", "MF", "RF", "LF") for joint in (2, 1, 0))
+
+
+class HandKinematics:
+    """Joint bookkeeping, inverse kinematics and the action map of one Adroit model.
+
+    Example:
+        >>> kinematics = HandKinematics(env.model, *env.action_map)
+        >>> targets = kinematics.hold(data)           # every actuated joint where it is
+        >>> action = kinematics.action(data, targets)  # normalised, in [-1, 1]
+    """
+
+    def __init__(self, model: mujoco.MjModel, action_mean: np.ndarray, action_scale: np.ndarray) -> None:
+        self.model = model
+        self._scratch = mujoco.MjData(model)
+        self._action_mean, self._action_scale = np.asarray(action_mean), np.asarray(action_scale)
+        joints = model.actuator_trnid[:, 0]
+        self.actuator_of = {model.joint(j).name: index for index, j in enumerate(joints)}
+        self._qpos_of_actuator = model.jnt_qposadr[joints]
+        self._dof_of_actuator = model.jnt_dofadr[joints]
+
+    def qpos(self, data: mujoco.MjData, joint: str) -> float:
+        return float(data.qpos[self.model.jnt_qposadr[self.model.joint(joint).id]])
+
+    def hold(self, data: mujoco.MjData) -> np.ndarray:
+        """Position targets (one per actuator) equal to the current joint positions."""
+        return data.qpos[self._qpos_of_actuator].copy()
+
+    def solve(self, data: mujoco.MjData, site: str, goal: np.ndarray, joints: tuple[str, ...],
+              fixed: dict[str, float] | None = None, iterations: int = 30, damping: float = 1e-3) -> np.ndarray:
+        """Positions of ``joints`` that bring ``site`` to ``goal`` (others as in ``data``, or ``fixed``).
+
+        Damped least squares from the current pose, clipped to the joint ranges; the result
+        is the nearest reachable pose when ``goal`` is out of reach.
+        """
+        model, scratch = self.model, self._scratch
+        scratch.qpos[:] = data.qpos
+        for joint, value in (fixed or {}).items():
+            scratch.qpos[model.jnt_qposadr[model.joint(joint).id]] = value
+        ids = [model.joint(joint).id for joint in joints]
+        qpos, dofs = model.jnt_qposadr[ids], model.jnt_dofadr[ids]
+        low, high = model.jnt_range[ids].T
+        site_id = model.site(site).id
+        jacobian = np.zeros((3, model.nv))
+        for _ in range(iterations):
+            mujoco.mj_kinematics(model, scratch)
+            mujoco.mj_comPos(model, scratch)
+            error = goal - scratch.site_xpos[site_id]
+            mujoco.mj_jacSite(model, scratch, jacobian, None, site_id)
+            arm = jacobian[:, dofs]
+            step = arm.T @ np.linalg.solve(arm @ arm.T + damping * np.eye(3), error)
+            scratch.qpos[qpos] = np.clip(scratch.qpos[qpos] + step, low, high)
+        return scratch.qpos[qpos].copy()
+
+    def action(self, data: mujoco.MjData, targets: np.ndarray) -> np.ndarray:
+        """The normalised action whose servos hold ``targets`` (one per actuator) against the
+        current bias forces (gravity, Coriolis), clipped to [-1, 1]."""
+        gain, bias = self.model.actuator_gainprm[:, 0], -self.model.actuator_biasprm[:, 1]
+        ctrl = (bias * targets + data.qfrc_bias[self._dof_of_actuator]) / gain
+        return np.clip((ctrl - self._action_mean) / self._action_scale, -1.0, 1.0)
+
+
+def _rotate_z(vector: np.ndarray, angle: float) -> np.ndarray:
+    """``vector`` (2 or 3 components) turned by ``angle`` about the z axis."""
+    c, s = np.cos(angle), np.sin(angle)
+    turned = np.array([c * vector[0] - s * vector[1], s * vector[0] + c * vector[1]])
+    return np.r_[turned, vector[2:]]
+
+
+def _rotate_y(vector: np.ndarray, angle: float) -> np.ndarray:
+    """``vector`` turned by ``angle`` about the y axis (the latch's axis)."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([c * vector[0] + s * vector[2], vector[1], -s * vector[0] + c * vector[2]])
+
+
+@dataclass(frozen=True)
+class DoorControllerConfig:
+    """Settings of :func:`door_action` (tuned by ``d2a bench tune-expert --task adroit-door``).
+
+    Attributes:
+        hover: height above the handle from which the palm descends (m).
+        grasp_closure: finger flexion of the grasp (rad).
+        turn_step: the latch angle the palm leads the handle by while turning it (rad).
+        unlatched: latch angle from which the door is pulled (rad).
+        pull_step: the door angle the palm leads the handle by while pulling (rad).
+        pull_roll: forearm roll beyond the latch angle while pulling (rad).
+        release_at: door angle at which the hand lets go and goes round the door (rad).
+        push_step: the door angle the palm leads the door's inner face by while pushing (rad).
+        round_x, round_y: the waypoints round the door's free edge, in the door's frame (m).
+        push_x, push_y: the pushing point on the door's inner face, in the door's frame (m).
+        push_height: height of the palm while it goes round and pushes (m).
+        arm_gain, round_gain: arm targets lead the current pose by this multiple of the
+            inverse-kinematics step (1: the solution itself), holding and going round.
+    """
+
+    hover: float = 0.05
+    grasp_closure: float = 1.06
+    turn_step: float = 0.86
+    unlatched: float = 1.1
+    pull_step: float = 0.6
+    pull_roll: float = 1.07
+    release_at: float = 0.45
+    push_step: float = 0.78
+    round_x: float = -0.68
+    round_y: float = 0.097
+    push_x: float = -0.435
+    push_y: float = 0.083
+    push_height: float = 0.158
+    arm_gain: float = 1.63
+    round_gain: float = 1.72
+
+
+_DOOR_ARM = ("ARTz", "ARRx", "ARRy")
+
+
+def door_action(kinematics: HandKinematics, data: mujoco.MjData, config: DoorControllerConfig) -> np.ndarray:
+    """The door controller's action in the state of ``data``.
+
+    Grasps the lever from above, turns it by rolling the forearm while the palm follows the
+    lever's arc, pulls the door along its arc, lets go at ``release_at``, goes round the
+    free edge and pushes the door open from inside.
+    """
+    model = kinematics.model
+    palm = data.site("S_grasp").xpos.copy()
+    handle = data.site("S_handle").xpos.copy()
+    latch_axis = data.xanchor[model.joint("latch").id].copy()
+    hinge_axis = data.xanchor[model.joint("door_hinge").id].copy()
+    latch, hinge = kinematics.qpos(data, "latch"), kinematics.qpos(data, "door_hinge")
+    closure = float(np.mean([kinematics.qpos(data, joint) for joint in FINGER_FLEXION]))
+    to_handle = float(np.linalg.norm(palm - handle))
+    roll, closed, gain = 0.0, True, config.arm_gain
+
+    if hinge > config.release_at or (hinge > 0.5 and to_handle > 0.06):
+        closed, gain = False, config.round_gain
+        in_door = _rotate_z(palm[:2] - hinge_axis[:2], -hinge)  # the palm in the door's frame
+        height = config.push_height
+        if closure > 0.4:  # let go: back off and down, off the lever
+            local, height = in_door + np.array([0.0, -0.04]), palm[2] - 0.04
+        elif in_door[1] < 0.06 and in_door[0] > config.round_x + 0.05:  # outside: out past the free edge
+            local = np.array([config.round_x, min(in_door[1], -0.12)])
+        elif in_door[1] < 0.06:  # past the edge: round it
+            local = np.array([config.round_x, config.round_y])
+        else:  # inside: push the inner face ahead of where it is
+            local = _rotate_z(np.array([config.push_x, config.push_y]), config.push_step)
+        goal = np.r_[hinge_axis[:2] + _rotate_z(local, hinge), height]
+        if closure > 0.4 or to_handle < 0.1:
+            roll = kinematics.qpos(data, "ARRz")  # keep the lever clear while the hand opens
+    elif latch > config.unlatched or hinge > 0.05:
+        goal = hinge_axis + _rotate_z(handle - hinge_axis, config.pull_step)
+        roll = latch + config.pull_roll
+    elif to_handle < 0.025 or (closure > 0.6 and to_handle < 0.05):
+        goal = handle
+        if closure > 0.8 * config.grasp_closure:  # grasped: turn the lever
+            goal = latch_axis + _rotate_y(handle - latch_axis, config.turn_step)
+            roll = latch + config.turn_step
+    elif np.linalg.norm(palm[:2] - handle[:2]) > 0.02:
+        goal, closed = handle + np.array([0.0, 0.0, config.hover]), False
+    else:
+        goal, closed = handle, False
+
+    targets = np.zeros(model.nu)
+    arm = kinematics.solve(data, "S_grasp", goal, _DOOR_ARM, fixed={"ARRz": roll})
+    for joint, solution in zip(_DOOR_ARM, arm, strict=True):
+        current = kinematics.qpos(data, joint)
+        targets[kinematics.actuator_of[joint]] = current + gain * (solution - current)
+    targets[kinematics.actuator_of["ARRz"]] = roll
+    if closed:
+        for joint in FINGER_FLEXION:
+            targets[kinematics.actuator_of[joint]] = config.grasp_closure
+        targets[kinematics.actuator_of["THJ3"]], targets[kinematics.actuator_of["THJ4"]] = 1.0, 0.5
+    return kinematics.action(data, targets)
+
+
+CONTROLLERS = {"door": (door_action, DoorControllerConfig)}
+
+
+class ControllerReplica:
+    """A copy of one task's scene that runs the task's controller on ``physics`` vectors.
+
+    Example:
+        >>> replica = ControllerReplica("door")
+        >>> action = replica.act(observation["physics"])  # env made with physics_obs=True
+    """
+
+    def __init__(self, task: str, settings: object | None = None) -> None:
+        if task not in CONTROLLERS:
+            raise ValueError(f"no controller for Adroit {task!r}: controllers exist for {sorted(CONTROLLERS)}")
+        scene = AdroitEnv(task, state_obs=False)
+        self.task = task
+        self.model = mujoco.MjModel.from_xml_path(scene.model_path)
+        self.data = mujoco.MjData(self.model)
+        self.kinematics = HandKinematics(self.model, *scene.action_map)
+        scene.close()
+        self.control, settings_type = CONTROLLERS[task]
+        self.settings = settings if settings is not None else settings_type()
+
+    def act(self, physics: np.ndarray) -> np.ndarray:
+        """The controller's action in the state ``physics`` describes."""
+        set_physics(self.model, self.data, self.task, physics)
+        mujoco.mj_forward(self.model, self.data)  # the bias forces the servos must hold against
+        return self.control(self.kinematics, self.data, self.settings)

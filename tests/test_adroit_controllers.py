@@ -1,0 +1,94 @@
+"""Adroit controllers: inverse kinematics and the servo map against MuJoCo's own computations,
+actions that depend on the state alone, and a seeded door opened within the episode."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from collectors.adroit_controllers import ControllerReplica, HandKinematics
+from collectors.adroit_experts import AdroitExpert, default_expert_kind
+from collectors.envs import make_torchrl_env
+from d2a_envs.suites.adroit import AdroitEnv
+from tests.conftest import SMALL_ENV_KWARGS
+
+ARM = ("ARTz", "ARRx", "ARRy")
+
+
+@pytest.fixture(scope="module")
+def door():
+    env = AdroitEnv("door", physics_obs=True)
+    env.reset(seed=0)
+    yield env
+    env.close()
+
+
+def test_inverse_kinematics_reaches_a_point_the_arm_can_reach(door):
+    """The goal is where forward kinematics puts the palm for other arm joint values; from the
+    start pose, the solution brings the palm there (MuJoCo's kinematics at the solution)."""
+    model = door.model
+    kinematics = HandKinematics(model, *door.action_map)
+    probe = mujoco.MjData(model)
+    probe.qpos[:] = door.data.qpos
+    chosen = {"ARTz": 0.2, "ARRx": -0.2, "ARRy": 0.15}
+    for joint, value in chosen.items():
+        probe.qpos[model.joint(joint).qposadr[0]] = value
+    mujoco.mj_kinematics(model, probe)
+    goal = probe.site("S_grasp").xpos.copy()
+    solution = kinematics.solve(door.data, "S_grasp", goal, ARM)
+    for joint, value in zip(ARM, solution, strict=True):
+        probe.qpos[model.joint(joint).qposadr[0]] = value
+    mujoco.mj_kinematics(model, probe)
+    assert np.linalg.norm(probe.site("S_grasp").xpos - goal) < 1e-3
+    assert np.linalg.norm(goal - door.data.site("S_grasp").xpos) > 0.1  # a real move, not the start
+
+
+def test_the_action_map_makes_the_servos_cancel_the_bias_forces(door):
+    """At the action for "hold where you are", MuJoCo's actuator forces equal the bias forces
+    (gravity, Coriolis) on every actuated joint whose control is not clipped."""
+    model, data = door.model, mujoco.MjData(door.model)
+    data.qpos[:] = door.data.qpos
+    data.qpos[model.joint("ARRx").qposadr[0]] = -0.3  # a pose where gravity pulls on the arm
+    mujoco.mj_forward(model, data)
+    kinematics = HandKinematics(model, *door.action_map)
+    action = kinematics.action(data, kinematics.hold(data))
+    mean, scale = door.action_map
+    data.ctrl[:] = mean + action * scale
+    mujoco.mj_forward(model, data)
+    dofs = model.jnt_dofadr[model.actuator_trnid[:, 0]]
+    free = np.abs(action) < 1.0
+    assert free[:4].all() and free.sum() > 10  # the arm and some fingers (the rest sit at a range end)
+    np.testing.assert_allclose(data.actuator_force[free], data.qfrc_bias[dofs][free], atol=1e-6)
+    assert np.abs(data.qfrc_bias[dofs]).max() > 1.0  # the check is not trivially 0 = 0
+
+
+def test_the_controller_acts_on_the_state_alone():
+    """Two replicas given the same physics vector act the same; another state, another action."""
+    env = AdroitEnv("door", state_obs=False, physics_obs=True)
+    observation, _ = env.reset(seed=3)
+    first, second = ControllerReplica("door"), ControllerReplica("door")
+    action = first.act(observation["physics"])
+    assert np.array_equal(action, second.act(observation["physics"]))
+    moved, *_ = env.step(action)
+    assert not np.array_equal(first.act(moved["physics"]), action)
+    env.close()
+
+
+def test_controllers_are_the_default_where_they_exist_and_refused_elsewhere():
+    assert default_expert_kind("door") == "controller" and default_expert_kind("pen") == "planner"
+    assert AdroitExpert("adroit-door").kind == "controller"
+    assert AdroitExpert("adroit-door", kind="planner").kind == "planner"
+    with pytest.raises(ValueError, match="no controller for"):
+        AdroitExpert("adroit-pen", kind="controller")
+    with pytest.raises(ValueError, match="unknown expert kind"):
+        AdroitExpert("adroit-door", kind="oracle")
+
+
+def test_the_door_controller_opens_a_seeded_door_within_the_episode():
+    env = make_torchrl_env("adroit-door", {**SMALL_ENV_KWARGS, "physics_obs": True}, seed=7)
+    with torch.no_grad():
+        rollout = env.rollout(200, AdroitExpert("adroit-door"), break_when_any_done=False)
+    env.close()
+    assert bool(rollout["next", "success"].any())
