@@ -29,7 +29,7 @@ from tqdm import tqdm
 import d2a_envs
 from collectors.atomic import exclusive_writer, holds_only_lock
 from collectors.envs import make_torchrl_env
-from collectors.experts import expert_env_kwargs, make_expert
+from collectors.experts import expert_env_kwargs, expert_name, make_expert
 from collectors.ray_jobs import JobsLost, Lost, as_completed, ray_connection
 from collectors.storage import (
     CollectionRecord,
@@ -60,6 +60,8 @@ class CollectConfig:
             with ``keep_failures`` the rollouts off the demonstrated states that a world model
             can learn from beside the demonstrations.
         keep_failures: store every attempt (``episodes`` then counts attempts), not only successes.
+        expert: the Adroit expert, ``"controller"`` or ``"planner"`` (None: the task's default,
+            :func:`collectors.adroit_experts.default_expert_kind`); Meta-World has one.
         ray_address: run the attempts on Ray (``"local"``, ``"auto"`` or a cluster address);
             ``None``: in this process.
     """
@@ -77,6 +79,7 @@ class CollectConfig:
     ray_address: str | None = None
     action_noise: float = 0.0
     keep_failures: bool = False
+    expert: str | None = None
 
 
 def _open_output(config: CollectConfig) -> DemoDataset:
@@ -93,6 +96,7 @@ def _open_output(config: CollectConfig) -> DemoDataset:
 
 def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> CollectionRecord:
     """The record this run continues: the same task and seed resumes, anything else is new."""
+    expert = expert_name(task, config.expert)
     env_kwargs = json.loads(json.dumps(_env_kwargs(config)))  # as stored: tuples become lists
     known = dataset.metadata.tasks.setdefault(task, env_kwargs)
     if known != env_kwargs:
@@ -104,11 +108,12 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
         if record.task != task:
             continue
         if record.seed == config.seed:
-            if (record.action_noise, record.keep_failures) != (config.action_noise, config.keep_failures):
+            settings = (record.action_noise, record.keep_failures, record.expert or expert)
+            if settings != (config.action_noise, config.keep_failures, expert):
                 raise DatasetError(
                     f"{dataset.directory}: the {task} collection of seed {config.seed} used action noise "
-                    f"{record.action_noise} and keep_failures={record.keep_failures}; resume it with those, or pass "
-                    "another --seed")
+                    f"{record.action_noise}, keep_failures={record.keep_failures} and the {record.expert} expert; "
+                    "resume it with those, or pass another --seed")
             return record
         # The attempts this run may make must not reuse a seed: that would store an episode twice.
         last = config.seed + config.episodes * config.max_attempts_factor - 1
@@ -119,7 +124,7 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
                 f"that collection or a seed from {record.seed + record.attempts} on"
             )
     record = CollectionRecord(task=task, seed=config.seed, action_noise=config.action_noise,
-                              keep_failures=config.keep_failures)
+                              keep_failures=config.keep_failures, expert=expert)
     dataset.metadata.collections.append(record)
     return record
 
@@ -139,10 +144,11 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
     env_kwargs = {**_env_kwargs(config), **expert_env_kwargs(spec.name)}  # the expert's extra input is not stored
     first_seed = record.seed + record.attempts
     if config.ray_address is None:
-        rollouts = _expert_episodes(spec.name, env_kwargs, first_seed, config.max_episode_steps, config.action_noise)
+        rollouts = _expert_episodes(spec.name, env_kwargs, first_seed, config.max_episode_steps, config.action_noise,
+                                    config.expert)
     else:
         rollouts = _expert_episodes_on_ray(spec.name, env_kwargs, first_seed, config.max_episode_steps,
-                                           config.ray_address, config.action_noise)
+                                           config.ray_address, config.action_noise, config.expert)
     bar = tqdm(total=config.episodes, initial=record.kept, desc=f"{spec.name} demos", disable=not config.progress)
     try:
         for rollout in rollouts:
@@ -175,11 +181,11 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
 
 
 def _expert_episodes(task: str, env_kwargs: dict[str, Any], first_seed: int, max_steps: int,
-                     action_noise: float = 0.0) -> Iterator[TensorDictBase]:
+                     action_noise: float = 0.0, expert: str | None = None) -> Iterator[TensorDictBase]:
     """The expert's episodes with seeds ``first_seed``, ``first_seed + 1``, ... (one rollout each)."""
     env = make_torchrl_env(task, env_kwargs, seed=first_seed)
     collector = Collector(
-        env, make_expert(task, action_noise), frames_per_batch=max_steps, trajs_per_batch=1, traj_format="cat",
+        env, make_expert(task, action_noise, expert), frames_per_batch=max_steps, trajs_per_batch=1, traj_format="cat",
         total_frames=-1,
         auto_register_policy_transforms=False,  # the expert keeps its own state: leave the env as it is
     )
@@ -190,9 +196,9 @@ def _expert_episodes(task: str, env_kwargs: dict[str, Any], first_seed: int, max
 
 
 def _expert_episode(task: str, env_kwargs: dict[str, Any], seed: int, max_steps: int,
-                    action_noise: float = 0.0) -> TensorDictBase:
+                    action_noise: float = 0.0, expert: str | None = None) -> TensorDictBase:
     """One Ray job: the expert's episode of ``seed`` (module-level: Ray imports it)."""
-    episodes = _expert_episodes(task, env_kwargs, seed, max_steps, action_noise)
+    episodes = _expert_episodes(task, env_kwargs, seed, max_steps, action_noise, expert)
     try:
         return next(episodes)
     finally:
@@ -200,9 +206,10 @@ def _expert_episode(task: str, env_kwargs: dict[str, Any], seed: int, max_steps:
 
 
 def _expert_episodes_on_ray(task: str, env_kwargs: dict[str, Any], first_seed: int, max_steps: int,
-                            address: str, action_noise: float = 0.0) -> Iterator[TensorDictBase]:
+                            address: str, action_noise: float = 0.0,
+                            expert: str | None = None) -> Iterator[TensorDictBase]:
     """:func:`_expert_episodes` with every episode a Ray job, yielded in seed order."""
-    jobs = ((task, env_kwargs, seed, max_steps, action_noise) for seed in itertools.count(first_seed))
+    jobs = ((task, env_kwargs, seed, max_steps, action_noise, expert) for seed in itertools.count(first_seed))
     arrived: dict[int, TensorDictBase] = {}
     following = 0
     with contextlib.closing(as_completed(_expert_episode, jobs, address)) as outcomes:  # closing cancels the rest

@@ -1,4 +1,4 @@
-"""Experts as TorchRL policies: Meta-World's scripted ones, Adroit's planning ones."""
+"""Experts as TorchRL policies: Meta-World's scripted ones, Adroit's controllers and planners."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 
 import d2a_envs
-from collectors.adroit_experts import AdroitExpert
+from collectors.adroit_experts import AdroitExpert, default_expert_kind
 from collectors.envs import STATE_KEY
 
 
@@ -70,11 +70,24 @@ class ActionNoise(TensorDictModuleBase):
         return tensordict
 
 
-def make_expert(task: str, action_noise: float = 0.0) -> TensorDictModuleBase:
-    """The expert of ``task``: Meta-World's scripted policy or the Adroit planner; with
-    ``action_noise``, its actions perturbed by :class:`ActionNoise` (what it then executes)."""
+def expert_name(task: str, kind: str | None = None) -> str:
+    """Which expert acts on ``task``: ``scripted`` (Meta-World), or the Adroit ``kind``
+    (``controller`` or ``planner``; None: the task's default)."""
     spec = d2a_envs.get_task(task)
-    expert = AdroitExpert(spec.name) if spec.suite == "adroit" else ScriptedExpert(spec.name)
+    if spec.suite != "adroit":
+        if kind is not None:
+            raise ValueError(f"the expert kind ({kind}) applies to Adroit tasks; {spec.env_id} has one scripted expert")
+        return "scripted"
+    return kind or default_expert_kind(spec.task)
+
+
+def make_expert(task: str, action_noise: float = 0.0, kind: str | None = None) -> TensorDictModuleBase:
+    """The expert of ``task``: Meta-World's scripted policy, or the Adroit controller or planner
+    (``kind``; None: the task's default); with ``action_noise``, its actions perturbed by
+    :class:`ActionNoise` (what it then executes)."""
+    spec = d2a_envs.get_task(task)
+    name = expert_name(task, kind)
+    expert = ScriptedExpert(spec.name) if name == "scripted" else AdroitExpert(spec.name, name)
     return TensorDictSequential(expert, ActionNoise(action_noise)) if action_noise else expert
 
 

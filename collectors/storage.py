@@ -68,6 +68,7 @@ class CollectionRecord:
     kept: int = 0
     action_noise: float = 0.0  # std of the noise added to the expert's actions (0: demonstrations)
     keep_failures: bool = False  # every attempt stored, not only the successes
+    expert: str | None = None  # scripted, controller or planner (None: collected before this was recorded)
 
     @property
     def rollouts(self) -> bool:

@@ -151,7 +151,7 @@ def cmd_collect(args: argparse.Namespace) -> None:
                       overwrite=args.overwrite, ray_address=args.ray),
         episodes=args.episodes, seed=args.seed, max_attempts_factor=args.max_attempts_factor,
         max_episode_steps=args.max_episode_steps, action_noise=args.action_noise,
-        keep_failures=True if args.keep_failures else None,
+        keep_failures=True if args.keep_failures else None, expert=args.expert,
     )
     dataset = collect(config)
     print(f"wrote {dataset.num_frames} steps in {len(dataset.metadata.episodes)} episodes to {dataset.directory}")
@@ -496,7 +496,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench_envs.add_argument("--seed", type=NON_NEGATIVE, default=None)
     bench_envs.set_defaults(func=cmd_bench_envs)
 
-    collect = commands.add_parser("collect", help="expert demonstrations (scripted or planning) into a data set")
+    collect = commands.add_parser("collect", help="expert demonstrations (scripted, controller or planner) into a "
+                                                  "data set")
     _add_env_options(collect, several_tasks=True)
     collect.add_argument("--episodes", type=POSITIVE, default=None, help="successful episodes to keep per task")
     collect.add_argument("--out", required=True, help="data set directory")
@@ -506,6 +507,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="Gaussian noise added to the expert's actions: rollouts for a world model, never "
                               "trained on by policies (with --keep-failures)")
     collect.add_argument("--keep-failures", action="store_true", help="store every attempt, not only successes")
+    collect.add_argument("--expert", choices=("controller", "planner"), default=None,
+                         help="Adroit: the state-feedback controller (default where the task has one) or the "
+                              "predictive-sampling planner")
     mode = collect.add_mutually_exclusive_group()
     mode.add_argument("--append", action="store_true", help="add to (or resume) an existing data set")
     mode.add_argument("--overwrite", action="store_true", help="replace an existing data set")

@@ -3,6 +3,8 @@ actions that depend on the state alone, and a seeded door opened within the epis
 
 from __future__ import annotations
 
+import dataclasses
+
 import mujoco
 import numpy as np
 import pytest
@@ -92,3 +94,17 @@ def test_the_door_controller_opens_a_seeded_door_within_the_episode():
         rollout = env.rollout(200, AdroitExpert("adroit-door"), break_when_any_done=False)
     env.close()
     assert bool(rollout["next", "success"].any())
+
+
+def test_collect_records_the_expert_and_refuses_to_resume_with_another(tmp_path):
+    from collectors.collect import CollectConfig, collect
+    from collectors.storage import DatasetError, DemoDataset
+
+    config = CollectConfig(tasks=("adroit-door",), out=str(tmp_path / "door"), episodes=1, max_attempts_factor=1,
+                           seed=7, env_kwargs=SMALL_ENV_KWARGS, progress=False)
+    dataset = DemoDataset.open(collect(config).directory)
+    assert dataset.metadata.collections[0].expert == "controller" and dataset.metadata.episodes[0].success
+    with pytest.raises(DatasetError, match="the controller expert"):
+        collect(dataclasses.replace(config, episodes=2, append=True, expert="planner"))
+    with pytest.raises(ValueError, match="applies to Adroit tasks"):
+        collect(dataclasses.replace(config, tasks=("reach",), out=str(tmp_path / "reach"), expert="planner"))
