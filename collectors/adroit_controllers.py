@@ -118,19 +118,19 @@ class DoorControllerConfig:
     """
 
     hover: float = 0.05
-    grasp_closure: float = 1.06
-    turn_step: float = 0.86
+    grasp_closure: float = 0.953
+    turn_step: float = 0.976
     unlatched: float = 1.1
-    pull_step: float = 0.6
-    pull_roll: float = 1.07
-    release_at: float = 0.45
-    push_step: float = 0.78
-    round_x: float = -0.68
+    pull_step: float = 0.723
+    pull_roll: float = 1.121
+    release_at: float = 0.483
+    push_step: float = 0.3
+    round_x: float = -0.685
     round_y: float = 0.097
-    push_x: float = -0.435
-    push_y: float = 0.083
-    push_height: float = 0.158
-    arm_gain: float = 1.63
+    push_x: float = -0.405
+    push_y: float = 0.068
+    push_height: float = 0.16
+    arm_gain: float = 1.743
     round_gain: float = 1.72
 
 
