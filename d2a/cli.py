@@ -13,7 +13,7 @@ from collectors.ray_jobs import JobsLost  # the standard library only: `d2a --he
 
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
 ALGOS = ("d2a", "d2a-change", "d2a-change-top", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "mp1", "dp3",
-         "flowpolicy", "mp1-state")
+         "flowpolicy", "edm", "mp1-state")
 EVAL_LAYOUTS = ("fixed", "fresh")  # d2a_agents.policy.train.EVAL_LAYOUTS, likewise
 
 

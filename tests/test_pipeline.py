@@ -58,7 +58,8 @@ def policy_config(algo: str, data: str, out, world_model: str | None = None, ste
 
 @pytest.mark.parametrize("algo, normalizers", [
     ("mp1", {"action", "agent_pos", "point_cloud"}), ("dp3", {"action", "agent_pos", "point_cloud"}),
-    ("flowpolicy", {"action", "agent_pos", "point_cloud"}), ("mp1-state", {"action", "state"}),
+    ("flowpolicy", {"action", "agent_pos", "point_cloud"}), ("edm", {"action", "agent_pos", "point_cloud"}),
+    ("mp1-state", {"action", "state"}),
 ])
 def test_collect_train_evaluate_without_imagination(algo, normalizers, reach_data, tmp_path):
     _, history = train_policy(policy_config(algo, reach_data, tmp_path))

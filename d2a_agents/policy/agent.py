@@ -52,7 +52,7 @@ CLOUD_KEYS = ("point_cloud", IMAGINED_KEY)  # normalized with the current cloud'
 class Variant:
     """What an ``--algo`` name stands for (the one place it is decoded)."""
 
-    expert: str  # "meanflow", "diffusion" or "consistency-flow"
+    expert: str  # "meanflow", "diffusion", "edm" or "consistency-flow"
     # The second cloud encoder's input: "none" (no second encoder), "world-model" (the
     # imagined cloud) or "present" (the current cloud again, the control of imagination).
     imagination: str = "none"
@@ -71,6 +71,7 @@ VARIANTS: dict[str, Variant] = {
     "mp1": Variant("meanflow"),
     "dp3": Variant("diffusion"),
     "flowpolicy": Variant("consistency-flow"),
+    "edm": Variant("edm"),
     "mp1-state": Variant("meanflow", observation="state"),
 }
 ALGORITHMS = tuple(VARIANTS)
@@ -136,8 +137,9 @@ class PolicyConfig:
             use_cloud=not state, state_key="state" if state else "agent_pos",
         )
         object.__setattr__(self, "encoder", encoder)
-        # The time scale belongs to the algorithm: DDPM's 1000 for diffusion, 1 for flows.
-        time_scale = 1000.0 if variant.expert == "diffusion" else 1.0
+        # The time scale belongs to the algorithm: DDPM's 1000 for diffusion (EDM's ln(sigma) / 4
+        # spans about as much as DDPM's t in [0, 1]), 1 for flows.
+        time_scale = 1000.0 if variant.expert in ("diffusion", "edm") else 1.0
         object.__setattr__(self, "network", dataclasses.replace(self.network, time_scale=time_scale))
 
     @property
@@ -189,8 +191,12 @@ CPU_POLICY_PRESET = PolicyConfig(
 
 
 def make_expert(config: PolicyConfig):
-    """The action expert of ``config.algo`` (MeanFlow, with adaptive CFG or not, diffusion, or
-    consistency flow matching)."""
+    """The action expert of ``config.algo`` (MeanFlow, with adaptive CFG or not, diffusion, EDM,
+    or consistency flow matching)."""
+    if config.variant.expert == "edm":
+        from d2a_agents.policy.edm import EDM
+
+        return EDM()
     if config.variant.expert == "diffusion":
         from d2a_agents.policy.diffusion import Diffusion, DiffusionConfig
 
