@@ -27,6 +27,7 @@ import d2a_envs
 from collectors.dataset import Normalizer
 from collectors.storage import DemoDataset
 from d2a_agents.policy.agent import CPU_POLICY_PRESET, Policy, PolicyConfig
+from d2a_agents.policy.edm import EDMConfig
 from d2a_agents.world_model.evaluation import imagination_latency
 from d2a_agents.world_model.imagine import Imaginer
 from d2a_agents.world_model.triplane import CPU_PRESET, TriplaneWorldModel, WorldModelConfig
@@ -76,7 +77,7 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
                    "point_cloud": Normalizer(cloud.amin(0), cloud.amax(0))}
     results = {}
     policies = {algo: PolicyConfig(algo=algo, num_points=config.num_points)
-                for algo in ("d2a", "mp1", "dp3", "flowpolicy")}
+                for algo in ("d2a", "mp1", "dp3", "flowpolicy", "edm", "cp")}
     policies["d2a cpu preset"] = dataclasses.replace(CPU_POLICY_PRESET, algo="d2a")
     for name, policy_config in policies.items():
         policy = Policy(policy_config, action_dim, state_dim, normalizers).eval()
@@ -108,6 +109,9 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
     print(f"| DP3-style policy (DDIM), the same single encoder | 10 | {1000 * results['dp3']:.2f} |")
     print(f"| FlowPolicy-style policy (consistency flow, one Euler step), the same single encoder | 1 | "
           f"{1000 * results['flowpolicy']:.2f} |")
+    print(f"| EDM policy (Heun, {EDMConfig().inference_steps} steps; the Consistency Policy's teacher), the same "
+          f"single encoder | {2 * EDMConfig().inference_steps - 1} | {1000 * results['edm']:.2f} |")
+    print(f"| Consistency Policy student (one jump), the same single encoder | 1 | {1000 * results['cp']:.2f} |")
     print(f"| D2A policy, cpu preset ({CPU_POLICY_PRESET.num_points} points) | 1 | "
           f"{1000 * results['d2a cpu preset']:.2f} |")
     for name, seconds in results.items():

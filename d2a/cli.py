@@ -13,7 +13,7 @@ from collectors.ray_jobs import JobsLost  # the standard library only: `d2a --he
 
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
 ALGOS = ("d2a", "d2a-change", "d2a-change-top", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "mp1", "dp3",
-         "flowpolicy", "edm", "mp1-state")
+         "flowpolicy", "edm", "cp", "mp1-state")
 EVAL_LAYOUTS = ("fixed", "fresh")  # d2a_agents.policy.train.EVAL_LAYOUTS, likewise
 
 
@@ -279,7 +279,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
     config = _replace_given(
         TrainPolicyConfig.from_preset(preset, data=args.data, out=args.out, policy=policy,
-                                      world_model=args.world_model),
+                                      world_model=args.world_model, teacher=args.teacher),
         eval_every=args.eval_every, eval_episodes=args.eval_episodes, eval_layouts=args.eval_layouts,
         eval_workers=args.workers, seed=args.seed, holdout_episodes=args.holdout_episodes, device=args.device,
         threads=args.threads, logger=args.logger, augment_shift=args.augment_shift, demos=args.demos,
@@ -550,6 +550,8 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--algo", choices=ALGOS, default="d2a",
                               help="mp1-state: the privileged-state reference (no cloud; the perception upper bound)")
     train_policy.add_argument("--world-model", default=None, help="checkpoint of d2a train-wm (d2a variants)")
+    train_policy.add_argument("--teacher", default=None,
+                              help="--algo cp: the EDM teacher it distils (policy.pt of --algo edm, same data)")
     train_policy.add_argument("--preset", choices=("cpu", "paper"), default="cpu",
                               help="networks and budget: cpu (64 points, narrow, 4000 steps of 256, lr 1e-3) or "
                                    "paper (1024 points, 47k steps of 128, lr 1e-4; GPU work)")

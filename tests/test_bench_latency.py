@@ -18,7 +18,8 @@ def test_bench_latency_times_policies_and_world_models(reach_data, tmp_path, cap
     results = run(LatencyBenchConfig(task="reach", num_points=64, repeats=2,
                                      world_models=(WorldModelConfig(resolution=(8, 8, 4), channels=4),),
                                      world_model=str(world_model), data=reach_data))
-    expected = {"d2a", "mp1", "dp3", "flowpolicy", "d2a cpu preset", "imagination 8x8x4, untrained, whole band"}
+    expected = {"d2a", "mp1", "dp3", "flowpolicy", "edm", "cp", "d2a cpu preset",
+                "imagination 8x8x4, untrained, whole band"}
     assert expected <= set(results)
     trained = [name for name in results if "trained (wm.pt)" in name]
     assert len(trained) == 4  # the data's cloud size and the policy's point count, whole band and grown

@@ -12,7 +12,7 @@ import torch
 
 from collectors.evaluation import evaluate
 from collectors.storage import DatasetError, DemoDataset
-from d2a_agents.checkpoint import CheckpointError, load_checkpoint
+from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint
 from d2a_agents.policy.agent import PolicyConfig
 from d2a_agents.policy.checkpoints import (
     CHECKPOINT_NAME,
@@ -54,6 +54,32 @@ def policy_config(algo: str, data: str, out, world_model: str | None = None, ste
     return TrainPolicyConfig(data=data, out=str(out), policy=PolicyConfig(algo=algo, **TINY),
                              world_model=world_model, steps=steps, batch_size=4, eval_episodes=1, checkpoint_every=2,
                              progress=False)
+
+
+def test_a_consistency_student_distils_its_edm_teacher_and_reads_as_it_does(reach_data, tmp_path):
+    """--algo cp: the teacher's normalizers and encoder, frozen, and its network as the target's ODE;
+    the student acts in one network evaluation; a teacher of another kind is refused."""
+    train_policy(policy_config("edm", reach_data, tmp_path / "teacher"))
+    teacher, _ = load_policy(tmp_path / "teacher")
+    config = dataclasses.replace(policy_config("edm", reach_data, tmp_path / "student"),
+                                 policy=PolicyConfig(algo="cp", **TINY), teacher=str(tmp_path / "teacher"))
+    student, _ = train_policy(config)
+    for name, value in teacher.encoder.state_dict().items():
+        assert torch.equal(student.encoder.state_dict()[name], value)  # frozen through training and the EMA
+    assert torch.equal(student.normalizers["action"].low, teacher.normalizers["action"].low)
+    payload = load_checkpoint(tmp_path / "student" / CHECKPOINT_NAME, "policy")
+    assert payload["teacher_sha256"] == file_sha256(tmp_path / "teacher" / CHECKPOINT_NAME)
+    calls = []
+    student.net.register_forward_hook(lambda *_: calls.append(1))
+    window = {key: torch.zeros(1, 2, *shape) for key, shape in (("point_cloud", (8, 3)), ("agent_pos", (4,)))}
+    student.predict_action_chunk(window)
+    assert len(calls) == 1
+    with pytest.raises(CheckpointError, match="distils an edm"):
+        train_policy(dataclasses.replace(config, out=str(tmp_path / "other"), teacher=str(tmp_path / "student")))
+    with pytest.raises(ValueError, match="needs one"):
+        policy_config("cp", reach_data, tmp_path / "no-teacher")
+    with pytest.raises(ValueError, match="goes with --algo cp"):
+        dataclasses.replace(policy_config("mp1", reach_data, tmp_path / "mp1"), teacher=str(tmp_path / "teacher"))
 
 
 @pytest.mark.parametrize("algo, normalizers", [

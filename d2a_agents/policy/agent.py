@@ -52,7 +52,7 @@ CLOUD_KEYS = ("point_cloud", IMAGINED_KEY)  # normalized with the current cloud'
 class Variant:
     """What an ``--algo`` name stands for (the one place it is decoded)."""
 
-    expert: str  # "meanflow", "diffusion", "edm" or "consistency-flow"
+    expert: str  # "meanflow", "diffusion", "edm", "consistency-flow" or "consistency-trajectory"
     # The second cloud encoder's input: "none" (no second encoder), "world-model" (the
     # imagined cloud) or "present" (the current cloud again, the control of imagination).
     imagination: str = "none"
@@ -72,6 +72,7 @@ VARIANTS: dict[str, Variant] = {
     "dp3": Variant("diffusion"),
     "flowpolicy": Variant("consistency-flow"),
     "edm": Variant("edm"),
+    "cp": Variant("consistency-trajectory"),
     "mp1-state": Variant("meanflow", observation="state"),
 }
 ALGORITHMS = tuple(VARIANTS)
@@ -139,7 +140,7 @@ class PolicyConfig:
         object.__setattr__(self, "encoder", encoder)
         # The time scale belongs to the algorithm: DDPM's 1000 for diffusion (EDM's ln(sigma) / 4
         # spans about as much as DDPM's t in [0, 1]), 1 for flows.
-        time_scale = 1000.0 if variant.expert in ("diffusion", "edm") else 1.0
+        time_scale = 1000.0 if variant.expert in ("diffusion", "edm", "consistency-trajectory") else 1.0
         object.__setattr__(self, "network", dataclasses.replace(self.network, time_scale=time_scale))
 
     @property
@@ -192,7 +193,11 @@ CPU_POLICY_PRESET = PolicyConfig(
 
 def make_expert(config: PolicyConfig):
     """The action expert of ``config.algo`` (MeanFlow, with adaptive CFG or not, diffusion, EDM,
-    or consistency flow matching)."""
+    consistency flow matching, or the consistency student, whose teacher is attached in training)."""
+    if config.variant.expert == "consistency-trajectory":
+        from d2a_agents.policy.consistency_policy import ConsistencyTrajectory
+
+        return ConsistencyTrajectory()
     if config.variant.expert == "edm":
         from d2a_agents.policy.edm import EDM
 

@@ -97,19 +97,18 @@ class EDM:
         loss = (weight * error).mean()
         return loss, {"loss": loss.item(), "mse": error.mean().item()}
 
+    def slope(self, net: nn.Module, x: torch.Tensor, sigma: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """dx/dsigma of the probability-flow ODE, (x - D(x; sigma)) / sigma, ``sigma`` (B,)."""
+        return (x - self.denoise(net, x, sigma, cond)) / per_sample(sigma, x)
+
     def heun_step(
-        self, net: nn.Module, x: torch.Tensor, sigma: float, sigma_next: float, cond: torch.Tensor
+        self, net: nn.Module, x: torch.Tensor, sigma: torch.Tensor, sigma_next: torch.Tensor, cond: torch.Tensor
     ) -> torch.Tensor:
-        """One step of the probability-flow ODE from ``sigma`` to ``sigma_next`` (Euler when it is 0)."""
-        batch = x.shape[0]
-        level = torch.full((batch,), sigma, dtype=x.dtype, device=x.device)
-        slope = (x - self.denoise(net, x, level, cond)) / sigma
-        euler = x + (sigma_next - sigma) * slope
-        if sigma_next == 0:
-            return euler
-        level_next = torch.full((batch,), sigma_next, dtype=x.dtype, device=x.device)
-        slope_next = (euler - self.denoise(net, euler, level_next, cond)) / sigma_next
-        return x + (sigma_next - sigma) * (slope + slope_next) / 2
+        """One Heun step of the probability-flow ODE from ``sigma`` to ``sigma_next`` (both (B,), > 0)."""
+        step = per_sample(sigma_next - sigma, x)
+        slope = self.slope(net, x, sigma, cond)
+        euler = x + step * slope
+        return x + step * (slope + self.slope(net, euler, sigma_next, cond)) / 2
 
     def schedule(self, steps: int | None = None) -> list[float]:
         """The sampler's noise levels: the Karras schedule, then 0."""
@@ -127,5 +126,10 @@ class EDM:
         levels = self.schedule(steps)
         x = draw("randn", shape, cond, generator) * levels[0]
         for sigma, sigma_next in zip(levels[:-1], levels[1:], strict=True):
-            x = self.heun_step(net, x, sigma, sigma_next, cond)
+            level, level_next = (torch.full((shape[0],), value, dtype=x.dtype, device=x.device)
+                                 for value in (sigma, sigma_next))
+            if sigma_next == 0:  # the last step: Euler to the denoiser's estimate
+                x = x - sigma * self.slope(net, x, level, cond)
+            else:
+                x = self.heun_step(net, x, level, level_next, cond)
         return x.clamp(-1.0, 1.0) if self.config.clip_sample else x

@@ -37,7 +37,14 @@ from d2a_agents.policy.agent import (
     subsample_cloud,
     uses_imagination,
 )
-from d2a_agents.policy.checkpoints import CHECKPOINT_KIND, CHECKPOINT_NAME, evaluate_checkpoint, imaginer_tasks
+from d2a_agents.policy.checkpoints import (
+    CHECKPOINT_KIND,
+    CHECKPOINT_NAME,
+    evaluate_checkpoint,
+    imaginer_tasks,
+    load_policy,
+    policy_file,
+)
 from d2a_agents.policy.perception import Reliance, reliance
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import Imaginer
@@ -99,6 +106,7 @@ class TrainPolicyConfig:
     out: str
     policy: PolicyConfig = POLICY_PRESETS["cpu"].policy
     world_model: str | None = None
+    teacher: str | None = None  # --algo cp: the EDM teacher's policy.pt (d2a train-policy --algo edm)
     steps: int = POLICY_PRESETS["cpu"].steps
     batch_size: int = POLICY_PRESETS["cpu"].batch_size
     learning_rate: float = POLICY_PRESETS["cpu"].learning_rate
@@ -156,6 +164,8 @@ class TrainPolicyConfig:
             raise ValueError(f"eval_layouts must be one of {EVAL_LAYOUTS}, not {self.eval_layouts!r}")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate must be positive, not {self.learning_rate}")
+        if (self.teacher is not None) != (self.policy.variant.expert == "consistency-trajectory"):
+            raise ValueError("--teacher (an EDM policy.pt) goes with --algo cp, and --algo cp needs one")
         if self.augment_shift is not None and not 0 <= self.augment_shift < math.inf:
             raise ValueError(f"augment_shift must be a distance >= 0 in metres, not {self.augment_shift}")
 
@@ -317,6 +327,23 @@ def _reliance_batch(windows: DemoWindows, config: TrainPolicyConfig) -> TensorDi
     return windows.get(chosen)
 
 
+def adopt_teacher(student: Policy, path: str) -> torch.nn.Module:
+    """Make ``student`` (``--algo cp``) read observations as the EDM teacher at ``path`` does: its
+    normalizers and its observation encoder, frozen; return the teacher's network (frozen)."""
+    teacher, _ = load_policy(path)
+    if teacher.config.algo != "edm":
+        raise CheckpointError(f"{path} is a {teacher.config.algo} policy; a consistency student distils an edm one")
+    shapes = ("horizon", "n_obs_steps", "num_points", "encoder")
+    mismatched = [name for name in shapes if getattr(teacher.config, name) != getattr(student.config, name)]
+    if mismatched or (teacher.action_dim, teacher.state_dim) != (student.action_dim, student.state_dim):
+        raise CheckpointError(f"the teacher {path} was trained with another {', '.join(mismatched) or 'data shape'}: "
+                              "train the student with the teacher's settings")
+    student.normalizers.load_state_dict(teacher.normalizers.state_dict())
+    student.encoder.load_state_dict(teacher.encoder.state_dict())
+    student.encoder.requires_grad_(False)
+    return teacher.net.requires_grad_(False).eval()
+
+
 def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoint]]:
     """Train (or resume) a policy; returns the EMA policy and its evaluation history.
 
@@ -361,7 +388,10 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     torch.manual_seed(config.seed)
     state_dim = frames[config.policy.encoder.state_key].shape[-1]
     policy = Policy(config.policy, frames["action"].shape[-1], state_dim, normalizers).to(device)
+    teacher = adopt_teacher(policy, config.teacher) if config.teacher else None
     ema = copy.deepcopy(policy).requires_grad_(False)
+    if teacher is not None:
+        policy.expert.teacher = teacher.to(device)  # after the EMA copy: only training needs it
     optimizer = torch.optim.AdamW(policy.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _cosine_with_warmup(config.warmup_steps, config.steps))
     generator = torch.Generator(device=device).manual_seed(config.seed)
@@ -373,7 +403,10 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     static = {
         "policy_config": config.policy.to_dict(), "action_dim": policy.action_dim, "state_dim": policy.state_dim,
         "world_model": world_model_path,
-        "world_model_sha256": world_model_hash, "tasks": tasks, "env_kwargs": dataset.metadata.tasks,
+        "world_model_sha256": world_model_hash, "tasks": tasks,
+        "teacher": str(policy_file(config.teacher).resolve()) if config.teacher else None,
+        "teacher_sha256": file_sha256(policy_file(config.teacher)) if config.teacher else None,
+        "env_kwargs": dataset.metadata.tasks,
         "data": str(config.data), "held_out_episodes": held_ids, "augment_shift": augment_shift,
         "train_config": {k: v for k, v in dataclasses.asdict(config).items() if k != "policy"},
         "run_config": {k: v for k, v in dataclasses.asdict(config).items()
