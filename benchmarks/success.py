@@ -226,28 +226,46 @@ def evaluation_interval(steps: int, evaluations: int) -> int:
     return interval
 
 
+def _train_config(
+    config: SuccessBenchConfig, task: str, algo: str, seed: int, data: Path, world_model: Path | None,
+    device: str | None, workers: int, teacher: Path | None = None,
+) -> TrainPolicyConfig:
+    """The training run of one cell (its periodic evaluations included)."""
+    preset = config.policy
+    return TrainPolicyConfig.from_preset(
+        preset, data=str(data), out=str(Path(config.workdir) / "runs" / _cell_name(config, task, algo, seed)),
+        policy=dataclasses.replace(preset.policy, algo=algo),
+        world_model=str(world_model) if uses_imagination(algo) else None, teacher=str(teacher) if teacher else None,
+        eval_every=evaluation_interval(preset.steps, config.evaluations), eval_episodes=config.eval_episodes,
+        eval_layouts=config.eval_layouts, eval_workers=workers, seed=seed, threads=config.threads, demos=config.demos,
+        device=device or config.device, progress=config.ray_address is None,  # a Ray worker's bars go to a log
+    )
+
+
 def run_cell(
     config: SuccessBenchConfig, task: str, algo: str, seed: int, data: Path, world_model: Path | None,
     device: str | None = None, workers: int | None = None,
 ) -> Cell:
     """Train one policy (resuming if interrupted) with its periodic evaluations, then the final
-    one; ``device`` and ``workers`` default to the config's (a Ray cell passes its own)."""
-    run = Path(config.workdir) / "runs" / _cell_name(config, task, algo, seed)
-    started = time.perf_counter()
-    preset = config.policy
+    one; ``device`` and ``workers`` default to the config's (a Ray cell passes its own).
+
+    A ``cp`` cell distils the ``edm`` cell of its task and seed: that run is trained first
+    when it is not finished yet (or waited for while another process trains it), and the
+    ``edm`` cell later finds it done.
+    """
     workers = workers or config.workers
-    progress = config.ray_address is None  # a Ray worker's bars would go to its log file
-    _, history = train_policy(TrainPolicyConfig.from_preset(
-        preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=algo),
-        world_model=str(world_model) if uses_imagination(algo) else None,
-        eval_every=evaluation_interval(preset.steps, config.evaluations), eval_episodes=config.eval_episodes,
-        eval_layouts=config.eval_layouts, eval_workers=workers, seed=seed, threads=config.threads, demos=config.demos,
-        device=device or config.device, progress=progress,
-    ))
+    teacher = None
+    if algo == "cp":
+        teacher_run = _train_config(config, task, "edm", seed, data, None, device, workers)
+        _when_free(lambda: train_policy(teacher_run), f"{task} edm teacher, seed {seed}")
+        teacher = Path(teacher_run.out)
+    started = time.perf_counter()
+    train = _train_config(config, task, algo, seed, data, world_model, device, workers, teacher)
+    _, history = train_policy(train)
     train_seconds = time.perf_counter() - started
     if config.final_episodes:
-        final = evaluate_checkpoint(run / CHECKPOINT_NAME, task, config.final_episodes, config.final_seed,
-                                    workers=workers, end_on_success=True, progress=progress)
+        final = evaluate_checkpoint(Path(train.out) / CHECKPOINT_NAME, task, config.final_episodes, config.final_seed,
+                                    workers=workers, end_on_success=True, progress=train.progress)
         wins, episodes = sum(final.successes), final.episodes
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes

@@ -74,6 +74,21 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
         bench.run(other_clouds)
 
 
+def test_a_cp_cell_trains_its_edm_teacher_first_and_the_edm_cell_finds_it_done(tmp_path):
+    env_kwargs = {"image_size": 48, "num_points": 128}
+    policy = PolicyConfig(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
+                          network=VelocityNetConfig(hidden=32, layers=2))
+    config = SuccessBenchConfig(tasks=("reach",), algos=("cp",), demos=1, workdir=str(tmp_path),
+                                policy=PolicyPreset(policy, steps=2, batch_size=4, learning_rate=1e-3),
+                                evaluations=1, eval_episodes=1, seeds=(0,), final_episodes=0, env_kwargs=env_kwargs)
+    (cell,) = bench.run(config)
+    teacher = tmp_path / "runs" / bench._cell_name(config, "reach", "edm", 0) / "policy.pt"
+    student = load_checkpoint(tmp_path / "runs" / bench._cell_name(config, "reach", "cp", 0) / "policy.pt", "policy")
+    assert cell.algo == "cp" and student["teacher"] == str(teacher.resolve())
+    (edm,) = bench.run(dataclasses.replace(config, algos=("edm",)))
+    assert edm.algo == "edm" and load_checkpoint(teacher, "policy")["step"] == 2  # resumed finished: no step more
+
+
 @pytest.mark.parametrize(("steps", "evaluations"), [(4000, 5), (4000, 15), (3000, 15), (10, 4), (7, 7), (7, 1)])
 def test_evaluation_interval_gives_the_asked_count(steps, evaluations):
     interval = bench.evaluation_interval(steps, evaluations)
