@@ -32,6 +32,12 @@ SEARCH_SPACE = {
         "push_x": (-0.5, -0.35), "push_y": (0.06, 0.13), "push_height": (0.12, 0.26), "arm_gain": (1.0, 2.2),
         "round_gain": (0.8, 2.2),
     },
+    "hammer": {
+        "grasp_x": (-0.1, -0.06), "grasp_y": (-0.03, 0.01), "grasp_z": (-0.015, 0.005), "hover": (0.04, 0.1),
+        "grasp_closure": (1.2, 1.6), "lift": (0.08, 0.2), "deviation": (-0.79, -0.5), "extension": (-0.52, 0.0),
+        "pitch_gain": (0.5, 3.0), "aim_yaw": (0.15, 0.3), "swing": (0.1, 0.5), "aligned": (0.01, 0.04),
+        "arm_gain": (0.8, 1.8),
+    },
 }
 
 

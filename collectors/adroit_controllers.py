@@ -195,7 +195,100 @@ def door_action(kinematics: HandKinematics, data: mujoco.MjData, config: DoorCon
     return kinematics.action(data, targets)
 
 
-CONTROLLERS = {"door": (door_action, DoorControllerConfig)}
+@dataclass(frozen=True)
+class HammerControllerConfig:
+    """Settings of :func:`hammer_action`.
+
+    Attributes:
+        grasp_x, grasp_y, grasp_z: the grasp point on the hammer's neck, from where every
+            reset puts the hammer's origin (its handle, HAMMER_START) (m). A fixed point: a target
+            that followed the hammer would chase it as the closing fingers push it.
+        hover: height above the grasp point from which the palm descends (m).
+        grasp_closure: finger flexion of the grasp (rad).
+        lift: height above the grasp point the palm lifts the hammer to (m).
+        deviation: wrist deviation that turns the held hammer's head forwards (rad).
+        extension: wrist flexion while aiming and striking (rad, negative: extension).
+        pitch_gain: forearm pitch change per metre of the head's height error (rad / m).
+        aim_yaw: forearm yaw the strike starts from (rad).
+        swing: forearm yaw change per control step of the strike (rad).
+        aligned: head-to-nail height error under which the strike goes on (m).
+        arm_gain: arm targets lead the current pose by this multiple of the inverse-kinematics
+            step while grasping.
+    """
+
+    grasp_x: float = -0.08
+    grasp_y: float = -0.01
+    grasp_z: float = -0.005
+    hover: float = 0.06
+    grasp_closure: float = 1.5
+    lift: float = 0.14
+    deviation: float = -0.79
+    extension: float = -0.5
+    pitch_gain: float = 1.5
+    aim_yaw: float = 0.3
+    swing: float = 0.3
+    aligned: float = 0.02
+    arm_gain: float = 1.0
+
+
+_HAMMER_ARM = ("ARRx", "ARRy", "WRJ1")
+HAMMER_START = np.array([0.0, -0.2, 0.035])  # the hammer's origin after every reset (the board alone moves)
+# The thumb's opposition for the neck grasp: its tip meets the curled fingers under the palm.
+_HAMMER_THUMB = {"THJ4": 0.0, "THJ3": 1.3, "THJ2": 0.26, "THJ1": -0.52, "THJ0": -1.57}
+
+
+def hammer_action(kinematics: HandKinematics, data: mujoco.MjData, config: HammerControllerConfig) -> np.ndarray:
+    """The hammer controller's action in the state of ``data``.
+
+    Grasps the neck from above (fingers curled under it, the thumb opposed), lifts, turns the
+    head forwards with the wrist, matches the head's height to the nail's with the forearm's
+    pitch, and strikes by sweeping the forearm's yaw: the head drives the nail sideways, along
+    its axis.
+    """
+    model = kinematics.model
+    palm = data.site("S_grasp").xpos.copy()
+    hammer = data.xpos[model.body("Object").id].copy()
+    head, nail = data.site("tool").xpos.copy(), data.site("S_target").xpos.copy()
+    closure = float(np.mean([kinematics.qpos(data, joint) for joint in FINGER_FLEXION]))
+    grasp = HAMMER_START + np.array([config.grasp_x, config.grasp_y, config.grasp_z])
+    to_grasp = float(np.linalg.norm(palm - grasp))
+    targets = np.zeros(model.nu)
+    closed = True
+    if hammer[2] > 0.1:  # held up: aim, then strike
+        pitch = kinematics.qpos(data, "ARRx") + config.pitch_gain * (head[2] - nail[2])
+        yaw = kinematics.qpos(data, "ARRy")
+        turned = abs(kinematics.qpos(data, "WRJ0") - config.deviation) < 0.1
+        if turned and abs(head[2] - nail[2]) < config.aligned and (yaw < config.aim_yaw - 0.05 or head[0] < nail[0]):
+            yaw -= config.swing  # strike: sweep the head along the nail's axis
+        else:
+            yaw = config.aim_yaw
+        arm = {"ARRx": pitch, "ARRy": yaw, "WRJ1": config.extension, "WRJ0": config.deviation}
+    else:
+        if closure > 0.65 * config.grasp_closure and to_grasp < 0.06:  # grasped (the neck stops the fingers): lift
+            goal = grasp + np.array([0.0, 0.0, config.lift])
+        elif (closure > 0.2 and to_grasp < 0.06) or (np.linalg.norm(palm[:2] - grasp[:2]) < 0.05
+                                                     and palm[2] < grasp[2] + 0.016):
+            goal = grasp
+        elif np.linalg.norm(palm[:2] - grasp[:2]) > 0.04:
+            goal, closed = grasp + np.array([0.0, 0.0, config.hover]), False
+        else:
+            goal, closed = grasp, False
+        solution = kinematics.solve(data, "S_grasp", goal, _HAMMER_ARM)
+        arm = {}
+        for joint, value in zip(_HAMMER_ARM, solution, strict=True):
+            current = kinematics.qpos(data, joint)
+            arm[joint] = current + config.arm_gain * (value - current)
+    for joint, value in arm.items():
+        targets[kinematics.actuator_of[joint]] = value
+    if closed:
+        for joint in FINGER_FLEXION:
+            targets[kinematics.actuator_of[joint]] = config.grasp_closure
+        for joint, value in _HAMMER_THUMB.items():
+            targets[kinematics.actuator_of[joint]] = value
+    return kinematics.action(data, targets)
+
+
+CONTROLLERS = {"door": (door_action, DoorControllerConfig), "hammer": (hammer_action, HammerControllerConfig)}
 
 
 class ControllerReplica:
