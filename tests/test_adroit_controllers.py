@@ -79,7 +79,8 @@ def test_the_controller_acts_on_the_state_alone():
 
 
 def test_controllers_are_the_default_where_they_exist_and_refused_elsewhere():
-    assert default_expert_kind("door") == "controller" and default_expert_kind("pen") == "planner"
+    assert default_expert_kind("door") == default_expert_kind("hammer") == "controller"
+    assert default_expert_kind("pen") == "planner"
     assert AdroitExpert("adroit-door").kind == "controller"
     assert AdroitExpert("adroit-door", kind="planner").kind == "planner"
     with pytest.raises(ValueError, match="no controller for"):
@@ -88,10 +89,11 @@ def test_controllers_are_the_default_where_they_exist_and_refused_elsewhere():
         AdroitExpert("adroit-door", kind="oracle")
 
 
-def test_the_door_controller_opens_a_seeded_door_within_the_episode():
-    env = make_torchrl_env("adroit-door", {**SMALL_ENV_KWARGS, "physics_obs": True}, seed=7)
+@pytest.mark.parametrize("task", ["adroit-door", "adroit-hammer"])
+def test_the_controller_solves_a_seeded_layout_within_the_episode(task):
+    env = make_torchrl_env(task, {**SMALL_ENV_KWARGS, "physics_obs": True}, seed=7)
     with torch.no_grad():
-        rollout = env.rollout(200, AdroitExpert("adroit-door"), break_when_any_done=False)
+        rollout = env.rollout(200, AdroitExpert(task), break_when_any_done=False)
     env.close()
     assert bool(rollout["next", "success"].any())
 

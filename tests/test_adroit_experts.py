@@ -206,7 +206,7 @@ def test_collect_stores_adroit_demonstrations_without_the_planner_input(tmp_path
     from collectors.storage import DemoDataset
 
     config = CollectConfig(tasks=("adroit-hammer",), out=str(tmp_path / "hammer"), episodes=1, max_attempts_factor=1,
-                           seed=2, max_episode_steps=45, env_kwargs=SMALL_ENV_KWARGS, progress=False)
+                           seed=2, max_episode_steps=45, env_kwargs=SMALL_ENV_KWARGS, progress=False, expert="planner")
     dataset = DemoDataset.open(collect(config).directory)
     episode = dataset.episode(0)
     assert dataset.metadata.episodes[0].success and bool(episode["success"].any())
