@@ -299,12 +299,16 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
         if args.n_action_steps is not None:
             raise ValueError("--n-action-steps applies to a policy checkpoint; the expert acts step by step")
-        result = evaluate(functools.partial(make_expert, args.task), args.task, args.episodes, args.seed,
+        make = functools.partial(make_expert, args.task, kind=args.expert)
+        make()  # a task without that expert fails here, before any worker starts
+        result = evaluate(make, args.task, args.episodes, args.seed,
                           env_kwargs={**env_kwargs, **expert_env_kwargs(args.task)}, workers=args.workers,
                           end_on_success=args.end_on_success, ray_address=args.ray)
     else:
         from d2a_agents.policy.checkpoints import evaluate_checkpoint
 
+        if args.expert is not None:
+            raise ValueError("--expert applies to --policy expert")
         if env_kwargs:
             raise ValueError(f"{args.policy} is evaluated in the env it was trained with; "
                              f"the env options ({', '.join(env_kwargs)}) apply to --policy expert only")
@@ -602,6 +606,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation = commands.add_parser("eval", help="evaluate a policy checkpoint (or the task's expert)")
     _add_env_options(evaluation)
     evaluation.add_argument("--policy", required=True, help="policy.pt of d2a train-policy, or 'expert'")
+    evaluation.add_argument("--expert", choices=("controller", "planner"), default=None,
+                            help="with --policy expert on Adroit: the controller (default where the task has one) "
+                                 "or the planner")
     evaluation.add_argument("--episodes", type=POSITIVE, default=100)
     evaluation.add_argument("--workers", type=POSITIVE, default=2)
     evaluation.add_argument("--end-on-success", action="store_true",

@@ -175,6 +175,10 @@ def test_eval_passes_the_actions_per_plan_to_a_checkpoint_only(monkeypatch):
     assert seen["n_action_steps"] is None  # the checkpoint's own
     with pytest.raises(SystemExit, match="expert acts step by step"):
         main(["eval", "--policy", "expert", "--n-action-steps", "1"])
+    with pytest.raises(SystemExit, match="applies to --policy expert"):
+        main(["eval", "--policy", "runs/p", "--task", "push", "--expert", "planner"])
+    with pytest.raises(SystemExit, match="no controller for"):
+        main(["eval", "--policy", "expert", "--task", "adroit-pen", "--expert", "controller"])
 
 
 def test_abbreviated_options_are_refused(captured, capsys):
