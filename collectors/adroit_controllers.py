@@ -254,7 +254,7 @@ def hammer_action(kinematics: HandKinematics, data: mujoco.MjData, config: Hamme
     to_grasp = float(np.linalg.norm(palm - grasp))
     targets = np.zeros(model.nu)
     closed = True
-    if hammer[2] > 0.1:  # held up: aim, then strike
+    if hammer[2] > 0.06 and closure > 0.65 * config.grasp_closure:  # held off the table: aim, then strike
         pitch = kinematics.qpos(data, "ARRx") + config.pitch_gain * (head[2] - nail[2])
         yaw = kinematics.qpos(data, "ARRy")
         turned = abs(kinematics.qpos(data, "WRJ0") - config.deviation) < 0.1
