@@ -29,7 +29,7 @@ from tqdm import tqdm
 import d2a_envs
 from collectors.atomic import exclusive_writer, holds_only_lock
 from collectors.envs import make_torchrl_env
-from collectors.experts import expert_env_kwargs, expert_name, make_expert
+from collectors.experts import ExpertSettings, expert_env_kwargs, expert_name, make_expert
 from collectors.ray_jobs import JobsLost, Lost, as_completed, ray_connection
 from collectors.storage import (
     CollectionRecord,
@@ -62,6 +62,8 @@ class CollectConfig:
         keep_failures: store every attempt (``episodes`` then counts attempts), not only successes.
         expert: the Adroit expert, ``"controller"`` or ``"planner"`` (None: the task's default,
             :func:`collectors.adroit_experts.default_expert_kind`); Meta-World has one.
+        dart_noise: std of Gaussian noise on the executed actions while the stored labels stay
+            the expert's (DART): demonstrations that also show how the expert recovers.
         ray_address: run the attempts on Ray (``"local"``, ``"auto"`` or a cluster address);
             ``None``: in this process.
     """
@@ -80,6 +82,11 @@ class CollectConfig:
     action_noise: float = 0.0
     keep_failures: bool = False
     expert: str | None = None
+    dart_noise: float = 0.0
+
+    @property
+    def expert_settings(self) -> ExpertSettings:
+        return ExpertSettings(self.expert, self.action_noise, self.dart_noise)
 
 
 def _open_output(config: CollectConfig) -> DemoDataset:
@@ -108,12 +115,12 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
         if record.task != task:
             continue
         if record.seed == config.seed:
-            settings = (record.action_noise, record.keep_failures, record.expert or expert)
-            if settings != (config.action_noise, config.keep_failures, expert):
+            settings = (record.action_noise, record.keep_failures, record.expert or expert, record.dart_noise)
+            if settings != (config.action_noise, config.keep_failures, expert, config.dart_noise):
                 raise DatasetError(
                     f"{dataset.directory}: the {task} collection of seed {config.seed} used action noise "
-                    f"{record.action_noise}, keep_failures={record.keep_failures} and the {record.expert} expert; "
-                    "resume it with those, or pass another --seed")
+                    f"{record.action_noise}, keep_failures={record.keep_failures}, the {record.expert} expert and "
+                    f"DART noise {record.dart_noise}; resume it with those, or pass another --seed")
             return record
         # The attempts this run may make must not reuse a seed: that would store an episode twice.
         last = config.seed + config.episodes * config.max_attempts_factor - 1
@@ -124,7 +131,7 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
                 f"that collection or a seed from {record.seed + record.attempts} on"
             )
     record = CollectionRecord(task=task, seed=config.seed, action_noise=config.action_noise,
-                              keep_failures=config.keep_failures, expert=expert)
+                              keep_failures=config.keep_failures, expert=expert, dart_noise=config.dart_noise)
     dataset.metadata.collections.append(record)
     return record
 
@@ -144,11 +151,11 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
     env_kwargs = {**_env_kwargs(config), **expert_env_kwargs(spec.name)}  # the expert's extra input is not stored
     first_seed = record.seed + record.attempts
     if config.ray_address is None:
-        rollouts = _expert_episodes(spec.name, env_kwargs, first_seed, config.max_episode_steps, config.action_noise,
-                                    config.expert)
+        rollouts = _expert_episodes(spec.name, env_kwargs, first_seed, config.max_episode_steps,
+                                    config.expert_settings)
     else:
         rollouts = _expert_episodes_on_ray(spec.name, env_kwargs, first_seed, config.max_episode_steps,
-                                           config.ray_address, config.action_noise, config.expert)
+                                           config.ray_address, config.expert_settings)
     bar = tqdm(total=config.episodes, initial=record.kept, desc=f"{spec.name} demos", disable=not config.progress)
     try:
         for rollout in rollouts:
@@ -181,11 +188,11 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
 
 
 def _expert_episodes(task: str, env_kwargs: dict[str, Any], first_seed: int, max_steps: int,
-                     action_noise: float = 0.0, expert: str | None = None) -> Iterator[TensorDictBase]:
+                     expert: ExpertSettings) -> Iterator[TensorDictBase]:
     """The expert's episodes with seeds ``first_seed``, ``first_seed + 1``, ... (one rollout each)."""
     env = make_torchrl_env(task, env_kwargs, seed=first_seed)
     collector = Collector(
-        env, make_expert(task, action_noise, expert), frames_per_batch=max_steps, trajs_per_batch=1, traj_format="cat",
+        env, make_expert(task, expert), frames_per_batch=max_steps, trajs_per_batch=1, traj_format="cat",
         total_frames=-1,
         auto_register_policy_transforms=False,  # the expert keeps its own state: leave the env as it is
     )
@@ -196,9 +203,9 @@ def _expert_episodes(task: str, env_kwargs: dict[str, Any], first_seed: int, max
 
 
 def _expert_episode(task: str, env_kwargs: dict[str, Any], seed: int, max_steps: int,
-                    action_noise: float = 0.0, expert: str | None = None) -> TensorDictBase:
+                    expert: ExpertSettings) -> TensorDictBase:
     """One Ray job: the expert's episode of ``seed`` (module-level: Ray imports it)."""
-    episodes = _expert_episodes(task, env_kwargs, seed, max_steps, action_noise, expert)
+    episodes = _expert_episodes(task, env_kwargs, seed, max_steps, expert)
     try:
         return next(episodes)
     finally:
@@ -206,10 +213,9 @@ def _expert_episode(task: str, env_kwargs: dict[str, Any], seed: int, max_steps:
 
 
 def _expert_episodes_on_ray(task: str, env_kwargs: dict[str, Any], first_seed: int, max_steps: int,
-                            address: str, action_noise: float = 0.0,
-                            expert: str | None = None) -> Iterator[TensorDictBase]:
+                            address: str, expert: ExpertSettings) -> Iterator[TensorDictBase]:
     """:func:`_expert_episodes` with every episode a Ray job, yielded in seed order."""
-    jobs = ((task, env_kwargs, seed, max_steps, action_noise, expert) for seed in itertools.count(first_seed))
+    jobs = ((task, env_kwargs, seed, max_steps, expert) for seed in itertools.count(first_seed))
     arrived: dict[int, TensorDictBase] = {}
     following = 0
     with contextlib.closing(as_completed(_expert_episode, jobs, address)) as outcomes:  # closing cancels the rest
@@ -230,11 +236,9 @@ def collect(config: CollectConfig) -> DemoDataset:
         raise ValueError(f"episodes must be positive, got {config.episodes}")
     specs = [d2a_envs.get_task(task) for task in config.tasks]  # unknown names fail before any work
     for spec in specs:
-        make_expert(spec.name)  # a task without an expert fails here
+        make_expert(spec.name, config.expert_settings)  # a task without that expert, or bad noise, fails here
     if config.max_episode_steps < 1 or config.max_attempts_factor < 1:
         raise ValueError("max_episode_steps and max_attempts_factor must be at least 1")
-    if not config.action_noise >= 0:
-        raise ValueError(f"action_noise must be a standard deviation >= 0, not {config.action_noise}")
     # Bad env settings (num_points 0, an unknown camera...) fail here, before the output
     # directory is touched: --overwrite must not wipe a data set for a run that cannot start.
     gym.make(specs[0].env_id, **_env_kwargs(config)).close()
@@ -244,6 +248,7 @@ def collect(config: CollectConfig) -> DemoDataset:
         for spec in specs:
             record = collect_task(dataset, spec.name, config)
             kept = "episodes" if config.keep_failures else "successful episodes"
-            noise = f", action noise {config.action_noise}" if config.action_noise else ""
+            noise = (f", action noise {config.action_noise}" if config.action_noise else
+                     f", DART noise {config.dart_noise} on the executed actions" if config.dart_noise else "")
             print(f"{spec.name}: kept {record.kept} {kept} of {record.attempts} tried (seed {record.seed}{noise})")
     return dataset

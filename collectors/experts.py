@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -13,6 +14,7 @@ from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 import d2a_envs
 from collectors.adroit_experts import AdroitExpert, default_expert_kind
 from collectors.envs import STATE_KEY
+from collectors.storage import EXPERT_ACTION_KEY
 
 
 class ScriptedExpert(TensorDictModuleBase):
@@ -51,18 +53,24 @@ class ActionNoise(TensorDictModuleBase):
     """Adds Gaussian noise of standard deviation ``std`` to ``action`` (clipped to [-1, 1]).
 
     The noise of a step depends only on its episode's seed and step count, so a noisy
-    collection is reproducible and resumes exactly, on any worker.
+    collection is reproducible and resumes exactly, on any worker. With ``keep_label`` the
+    expert's own action is kept under ``expert_action``: the env executes the noisy one and
+    the data set stores the expert's as the label (DART, Laskey et al., 2017: demonstrations
+    that visit the states a policy drifts to, labelled with how the expert recovers).
     """
 
-    def __init__(self, std: float) -> None:
+    def __init__(self, std: float, keep_label: bool = False) -> None:
         super().__init__()
         if not std >= 0:
             raise ValueError(f"action noise must be a standard deviation >= 0, not {std}")
-        self.std = std
-        self.in_keys, self.out_keys = ["action", "episode_seed", "step_count"], ["action"]
+        self.std, self.keep_label = std, keep_label
+        self.in_keys = ["action", "episode_seed", "step_count"]
+        self.out_keys = ["action", EXPERT_ACTION_KEY] if keep_label else ["action"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
+        if self.keep_label:
+            tensordict.set(EXPERT_ACTION_KEY, action.clone())
         seed = int(tensordict.get("episode_seed").reshape(-1)[0])
         step = int(tensordict.get("step_count").reshape(-1)[0])
         noise = np.random.default_rng([seed, step]).normal(0.0, self.std, size=tuple(action.shape))
@@ -81,14 +89,36 @@ def expert_name(task: str, kind: str | None = None) -> str:
     return kind or default_expert_kind(spec.task)
 
 
-def make_expert(task: str, action_noise: float = 0.0, kind: str | None = None) -> TensorDictModuleBase:
-    """The expert of ``task``: Meta-World's scripted policy, or the Adroit controller or planner
-    (``kind``; None: the task's default); with ``action_noise``, its actions perturbed by
-    :class:`ActionNoise` (what it then executes)."""
+@dataclass(frozen=True)
+class ExpertSettings:
+    """Which expert acts and how its executed actions are perturbed.
+
+    Attributes:
+        kind: the Adroit expert, ``controller`` or ``planner`` (None: the task's default).
+        action_noise: noise std on the executed and stored actions (rollouts for a world model).
+        dart_noise: noise std on the executed actions only; the stored label stays the expert's.
+    """
+
+    kind: str | None = None
+    action_noise: float = 0.0
+    dart_noise: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.action_noise and self.dart_noise:
+            raise ValueError("choose one of action noise (rollouts) and DART noise (demonstrations)")
+
+
+def make_expert(task: str, settings: ExpertSettings = ExpertSettings()) -> TensorDictModuleBase:
+    """The expert of ``task``: Meta-World's scripted policy, or the Adroit controller or planner;
+    with noise in ``settings``, its executed actions perturbed by :class:`ActionNoise`."""
     spec = d2a_envs.get_task(task)
-    name = expert_name(task, kind)
+    name = expert_name(task, settings.kind)
     expert = ScriptedExpert(spec.name) if name == "scripted" else AdroitExpert(spec.name, name)
-    return TensorDictSequential(expert, ActionNoise(action_noise)) if action_noise else expert
+    if settings.dart_noise:
+        return TensorDictSequential(expert, ActionNoise(settings.dart_noise, keep_label=True))
+    if settings.action_noise:
+        return TensorDictSequential(expert, ActionNoise(settings.action_noise))
+    return expert
 
 
 def expert_env_kwargs(task: str) -> dict[str, Any]:

@@ -30,6 +30,9 @@ from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 
 from collectors.atomic import atomic_write_text, holds_only_lock, is_lock_file
 
+# A rollout's expert action where the executed ``action`` was perturbed (DART noise): the label stored.
+EXPERT_ACTION_KEY = "expert_action"
+
 FORMAT = "d2a-demonstrations"
 # v2: clouds show the scene's visible sites (goal markers); v1 clouds did not.
 FORMAT_VERSION = 2
@@ -69,6 +72,7 @@ class CollectionRecord:
     action_noise: float = 0.0  # std of the noise added to the expert's actions (0: demonstrations)
     keep_failures: bool = False  # every attempt stored, not only the successes
     expert: str | None = None  # scripted, controller or planner (None: collected before this was recorded)
+    dart_noise: float = 0.0  # std of the noise on the executed actions; the stored labels are the expert's
 
     @property
     def rollouts(self) -> bool:
@@ -364,7 +368,7 @@ def episode_frames(rollout: TensorDictBase, episode_index: int) -> TensorDict:
             "point_cloud": rollout["point_cloud"],
             "agent_pos": rollout["agent_pos"],
             "state": rollout["observation"],
-            "action": rollout["action"],
+            "action": rollout.get(EXPERT_ACTION_KEY, rollout["action"]),  # with DART noise: the expert's label
             "reward": rollout["next", "reward"].reshape(steps),
             "success": rollout["next", "success"].reshape(steps),
             "episode": torch.full((steps,), episode_index, dtype=torch.int64),

@@ -151,7 +151,7 @@ def cmd_collect(args: argparse.Namespace) -> None:
                       overwrite=args.overwrite, ray_address=args.ray),
         episodes=args.episodes, seed=args.seed, max_attempts_factor=args.max_attempts_factor,
         max_episode_steps=args.max_episode_steps, action_noise=args.action_noise,
-        keep_failures=True if args.keep_failures else None, expert=args.expert,
+        keep_failures=True if args.keep_failures else None, expert=args.expert, dart_noise=args.dart_noise,
     )
     dataset = collect(config)
     print(f"wrote {dataset.num_frames} steps in {len(dataset.metadata.episodes)} episodes to {dataset.directory}")
@@ -295,11 +295,11 @@ def cmd_eval(args: argparse.Namespace) -> None:
         import functools
 
         from collectors.evaluation import evaluate
-        from collectors.experts import expert_env_kwargs, make_expert
+        from collectors.experts import ExpertSettings, expert_env_kwargs, make_expert
 
         if args.n_action_steps is not None:
             raise ValueError("--n-action-steps applies to a policy checkpoint; the expert acts step by step")
-        make = functools.partial(make_expert, args.task, kind=args.expert)
+        make = functools.partial(make_expert, args.task, ExpertSettings(kind=args.expert))
         make()  # a task without that expert fails here, before any worker starts
         result = evaluate(make, args.task, args.episodes, args.seed,
                           env_kwargs={**env_kwargs, **expert_env_kwargs(args.task)}, workers=args.workers,
@@ -511,6 +511,9 @@ def build_parser() -> argparse.ArgumentParser:
                          help="Gaussian noise added to the expert's actions: rollouts for a world model, never "
                               "trained on by policies (with --keep-failures)")
     collect.add_argument("--keep-failures", action="store_true", help="store every attempt, not only successes")
+    collect.add_argument("--dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
+                         help="Gaussian noise on the executed actions while the stored labels stay the expert's "
+                              "(DART): demonstrations that also show how the expert recovers")
     collect.add_argument("--expert", choices=("controller", "planner"), default=None,
                          help="Adroit: the state-feedback controller (default where the task has one) or the "
                               "predictive-sampling planner")

@@ -82,3 +82,27 @@ def test_a_policy_never_trains_on_rollouts_and_a_world_model_does_when_asked(wit
     with pytest.raises(ValueError, match="holds no rollouts"):
         wm_train.train_world_model(dataclasses.replace(wm, data=reach_data, out=str(tmp_path / "x.pt"),
                                                        with_rollouts=True))
+
+
+def test_dart_noise_perturbs_what_runs_and_stores_the_experts_label(tmp_path):
+    """Each stored action is the scripted expert's own action in the stored state (recomputed
+    here), while the executed, noisy actions move the hand off the clean demonstration."""
+    from metaworld.policies import ENV_POLICY_MAP
+
+    clean = DemoDataset.open(collect(CollectConfig(tasks=("reach",), out=str(tmp_path / "clean"), episodes=1,
+                                                   env_kwargs=SMALL, progress=False)).directory)
+    dart = DemoDataset.open(collect(CollectConfig(tasks=("reach",), out=str(tmp_path / "dart"), episodes=1,
+                                                  env_kwargs=SMALL, dart_noise=0.5, progress=False)).directory)
+    assert dart.metadata.collections[0].dart_noise == 0.5 and dart.rollout_episodes() == []  # demonstrations
+    episode = dart.episode(0)
+    expert = ENV_POLICY_MAP["reach-v3"]()
+    labels = np.stack([np.clip(expert.get_action(state), -1, 1) for state in episode["state"].double().numpy()])
+    np.testing.assert_allclose(episode["action"].numpy(), labels, atol=1e-5)
+    steps = min(len(episode["state"]), clean.metadata.episodes[0].length)
+    assert not torch.allclose(episode["state"][:steps, :3], clean.episode(0)["state"][:steps, :3], atol=1e-3)
+    with pytest.raises(DatasetError, match="DART noise 0.5"):  # resumed only with the same noise
+        collect(CollectConfig(tasks=("reach",), out=str(tmp_path / "dart"), episodes=2, append=True,
+                              env_kwargs=SMALL, progress=False))
+    with pytest.raises(ValueError, match="choose one of action noise"):
+        collect(CollectConfig(tasks=("reach",), out=str(tmp_path / "both"), episodes=1, env_kwargs=SMALL,
+                              action_noise=0.1, dart_noise=0.1, progress=False))
