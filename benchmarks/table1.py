@@ -60,8 +60,9 @@ PAPER_TABLE1: dict[str, dict[str, float]] = {
             "adroit-hammer": 100, "adroit-door": 74, "adroit-pen": 63},
 }
 # Why the Adroit columns are empty: the issue that fills them.
-ADROIT_PENDING = ("Adroit columns empty: no policy learns yet from the planning experts' demonstrations "
-                  "(1-16 %); they join once Adroit demonstrations a policy can imitate exist.")
+ADROIT_PENDING = ("Adroit columns empty: no policy learns yet from the Adroit experts' demonstrations (the "
+                  "planners': 1-16 %; the door controller's: mp1-state 1 %); they join once a policy can imitate "
+                  "them (docs/environments.md).")
 
 
 
