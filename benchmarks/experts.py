@@ -76,18 +76,22 @@ class ExpertBenchConfig:
     ray_address: str | None = None
     imitation_demos: int = 0  # 0: no learnability check
     imitation_episodes: int = 100
+    imitation_dart_noise: float = 0.0  # DART noise of the check's collection (0: plain demonstrations)
     imitation_steps: int = POLICY_PRESETS["cpu"].steps
     workdir: str = "outputs/bench_experts"  # the check's demonstrations and policies
 
 
 def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
     """``mp1-state`` trained (``cpu`` preset, one thread) on ``imitation_demos`` of the expert's
-    demonstrations of ``task``, its final checkpoint on ``imitation_episodes`` new layouts."""
-    data = Path(config.workdir) / "data" / task
+    demonstrations of ``task`` (collected with ``imitation_dart_noise``), its final checkpoint
+    on ``imitation_episodes`` new layouts."""
+    dart = f"_dart{config.imitation_dart_noise:g}" if config.imitation_dart_noise else ""
+    data = Path(config.workdir) / "data" / f"{task}{dart}"
     collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.imitation_demos, append=True,
-                          env_kwargs=config.env_kwargs, progress=False))
+                          env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise,
+                          max_attempts_factor=10 if dart else 3, progress=False))
     preset = POLICY_PRESETS["cpu"]
-    run = Path(config.workdir) / "runs" / f"{task}_mp1-state_d{config.imitation_demos}"
+    run = Path(config.workdir) / "runs" / f"{task}_mp1-state_d{config.imitation_demos}{dart}"
     train_policy(TrainPolicyConfig.from_preset(
         preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo="mp1-state"),
         steps=config.imitation_steps, demos=config.imitation_demos, eval_episodes=0, threads=1, progress=False))

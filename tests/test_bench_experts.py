@@ -16,3 +16,13 @@ def test_imitation_trains_mp1_state_on_the_demonstrations_and_evaluates_new_layo
     assert len(DemoDataset.open(tmp_path / "data" / "reach").metadata.episodes) == 2
     payload = load_checkpoint(policy_file(tmp_path / "runs" / "reach_mp1-state_d2"), "policy")
     assert payload["policy_config"]["algo"] == "mp1-state" and payload["step"] == 2
+
+
+def test_the_check_collects_with_dart_noise_apart_when_asked(tmp_path):
+    config = ExpertBenchConfig(tasks=("reach",), env_kwargs={"image_size": 32, "num_points": 32}, workers=1,
+                               imitation_demos=1, imitation_episodes=1, imitation_steps=2, workdir=str(tmp_path),
+                               imitation_dart_noise=0.05)
+    imitation_success(config, "reach")
+    dataset = DemoDataset.open(tmp_path / "data" / "reach_dart0.05")
+    assert dataset.metadata.collections[0].dart_noise == 0.05
+    assert (tmp_path / "runs" / "reach_mp1-state_d1_dart0.05" / "policy.pt").exists()
