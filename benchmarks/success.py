@@ -92,6 +92,9 @@ class SuccessBenchConfig:
     # trains on beside the demonstrations (0: none); imagining cells then carry ``_wmr<N>``.
     wm_rollouts: int = 0
     rollout_noise: float = 0.3
+    # DART noise of the demonstrations (d2a collect --dart-noise): their own data set, world
+    # models and cells (``_dart<std>``); 0: plain demonstrations.
+    dart_noise: float = 0.0
     workdir: str = "outputs/bench_success"
     cells: str | None = None  # directory of the finished cells' files (default: <workdir>/cells)
     policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget of every variant
@@ -187,10 +190,10 @@ def _when_free(work: Callable[[], Result], what: str, poll_seconds: float = 10.0
 def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     """The task's demonstrations in the workdir: collected, or a collection cut short completed
     (``collect`` refuses a data set collected with other env settings)."""
-    data = Path(config.workdir) / "data" / task
+    data = Path(config.workdir) / "data" / f"{task}{_dart_tag(config)}"
     _when_free(lambda: collect(CollectConfig(
         tasks=(task,), out=str(data), episodes=config.pool or config.demos, seed=0, append=True,
-        env_kwargs=config.env_kwargs,
+        env_kwargs=config.env_kwargs, dart_noise=config.dart_noise, max_attempts_factor=10 if config.dart_noise else 3,
         progress=config.ray_address is None, ray_address=config.ray_address,
     )), f"{task} demonstrations")
     if config.wm_rollouts:
@@ -203,7 +206,8 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
 
 
 def _world_model(config: SuccessBenchConfig, task: str, data: Path, device: str = "cpu") -> Path:
-    path = Path(config.workdir) / "world_models" / f"{task}{_demos_tag(config)}{_rollouts_tag(config)}.pt"
+    path = (Path(config.workdir) / "world_models"
+            / f"{task}{_demos_tag(config)}{_dart_tag(config)}{_rollouts_tag(config)}.pt")
     _when_free(lambda: train_world_model(TrainWorldModelConfig(
         data=str(data), out=str(path), model=config.world_model, steps=config.world_model_steps, demos=config.demos,
         with_rollouts=config.wm_rollouts > 0,
@@ -280,12 +284,16 @@ def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> s
     workdir (its data and world models) without one being read back as another."""
     fresh = "_fresh" if config.eval_layouts == "fresh" else ""
     rollouts = _rollouts_tag(config) if uses_imagination(algo) else ""
-    return (f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_demos_tag(config)}{rollouts}"
+    return (f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_demos_tag(config)}{_dart_tag(config)}{rollouts}"
             f"{_preset_tag(config.policy)}")
 
 
 def _rollouts_tag(config: SuccessBenchConfig) -> str:
     return f"_wmr{config.wm_rollouts}n{config.rollout_noise:g}" if config.wm_rollouts else ""
+
+
+def _dart_tag(config: SuccessBenchConfig) -> str:
+    return f"_dart{config.dart_noise:g}" if config.dart_noise else ""
 
 
 def _demos_tag(config: SuccessBenchConfig) -> str:

@@ -412,7 +412,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         workdir=args.workdir, workers=args.workers, env_kwargs=env_kwargs or None, world_model=world_model,
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
         eval_layouts=args.eval_layouts, demos=args.demos, pool=args.pool, cells=args.cells,
-        wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise,
+        wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise, dart_noise=args.dart_noise,
     ))
 
 
@@ -778,6 +778,9 @@ def build_parser() -> argparse.ArgumentParser:
                                help="noisy expert rollouts per task the world model also trains on (default 0)")
     bench_success.add_argument("--rollout-noise", type=NON_NEGATIVE_FLOAT, default=None,
                                help="std of their action noise (default 0.3)")
+    bench_success.add_argument("--dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
+                               help="collect the demonstrations with DART noise (d2a collect --dart-noise); their "
+                                    "data, world models and cells are named apart")
     bench_success.add_argument("--workdir", default=None,
                                help="data, models and finished cells; a rerun resumes")
     bench_success.add_argument("--cells", default=None,

@@ -89,6 +89,19 @@ def test_a_cp_cell_trains_its_edm_teacher_first_and_the_edm_cell_finds_it_done(t
     assert edm.algo == "edm" and load_checkpoint(teacher, "policy")["step"] == 2  # resumed finished: no step more
 
 
+def test_dart_cells_train_on_their_own_demonstrations(tmp_path):
+    env_kwargs = {"image_size": 48, "num_points": 128}
+    policy = PolicyConfig(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
+                          network=VelocityNetConfig(hidden=32, layers=2))
+    config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), demos=1, workdir=str(tmp_path), dart_noise=0.05,
+                                policy=PolicyPreset(policy, steps=2, batch_size=4, learning_rate=1e-3),
+                                evaluations=1, eval_episodes=1, seeds=(0,), final_episodes=0, env_kwargs=env_kwargs)
+    bench.run(config)
+    assert DemoDataset.open(tmp_path / "data" / "reach_dart0.05").metadata.collections[0].dart_noise == 0.05
+    assert not (tmp_path / "data" / "reach").exists()
+    assert bench.cell_path(config, "reach", "mp1", 0).name.startswith("reach_mp1_s0_e1_d1_dart0.05_")
+
+
 @pytest.mark.parametrize(("steps", "evaluations"), [(4000, 5), (4000, 15), (3000, 15), (10, 4), (7, 7), (7, 1)])
 def test_evaluation_interval_gives_the_asked_count(steps, evaluations):
     interval = bench.evaluation_interval(steps, evaluations)
