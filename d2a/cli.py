@@ -15,6 +15,7 @@ from collectors.ray_jobs import JobsLost  # the standard library only: `d2a --he
 ALGOS = ("d2a", "d2a-change", "d2a-change-top", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "mp1", "dp3",
          "flowpolicy", "edm", "cp", "mp1-state")
 EVAL_LAYOUTS = ("fixed", "fresh")  # d2a_agents.policy.train.EVAL_LAYOUTS, likewise
+EXPERT_KINDS = ("controller", "planner")  # collectors.adroit_experts.EXPERT_KINDS, likewise
 
 
 def _parse_box(text: str | None) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
@@ -515,7 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
     collect.add_argument("--dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
                          help="Gaussian noise on the executed actions while the stored labels stay the expert's "
                               "(DART): demonstrations that also show how the expert recovers")
-    collect.add_argument("--expert", choices=("controller", "planner"), default=None,
+    collect.add_argument("--expert", choices=EXPERT_KINDS, default=None,
                          help="Adroit: the state-feedback controller (default where the task has one) or the "
                               "predictive-sampling planner")
     mode = collect.add_mutually_exclusive_group()
@@ -610,7 +611,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation = commands.add_parser("eval", help="evaluate a policy checkpoint (or the task's expert)")
     _add_env_options(evaluation)
     evaluation.add_argument("--policy", required=True, help="policy.pt of d2a train-policy, or 'expert'")
-    evaluation.add_argument("--expert", choices=("controller", "planner"), default=None,
+    evaluation.add_argument("--expert", choices=EXPERT_KINDS, default=None,
                             help="with --policy expert on Adroit: the controller (default where the task has one) "
                                  "or the planner")
     evaluation.add_argument("--episodes", type=POSITIVE, default=100)

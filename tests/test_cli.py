@@ -104,11 +104,13 @@ def test_bench_wm_sets_the_main_model_the_baseline_row_and_the_collection(captur
     assert config.env_kwargs == {"num_points": 1024, "image_size": 256}
 
 
-def test_the_cli_offers_every_policy_variant():
+def test_the_cli_offers_every_policy_variant_and_expert_kind():
+    from collectors.adroit_experts import EXPERT_KINDS
     from d2a.cli import ALGOS
+    from d2a.cli import EXPERT_KINDS as CLI_EXPERT_KINDS
     from d2a_agents.policy.agent import ALGORITHMS
 
-    assert ALGOS == ALGORITHMS
+    assert ALGOS == ALGORITHMS and CLI_EXPERT_KINDS == EXPERT_KINDS
 
 
 def test_the_cli_offers_every_kind_of_evaluation_layouts(captured):
