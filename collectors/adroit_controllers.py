@@ -76,12 +76,31 @@ class HandKinematics:
             scratch.qpos[qpos] = np.clip(scratch.qpos[qpos] + step, low, high)
         return scratch.qpos[qpos].copy()
 
+    def lead(self, data: mujoco.MjData, joints: tuple[str, ...], solution: np.ndarray,
+             gain: float) -> dict[str, float]:
+        """Targets for ``joints``, ``gain`` times the way from where they are to ``solution``
+        (1: the solution itself; above 1 the servos pull harder towards it)."""
+        return {joint: self.qpos(data, joint) + gain * (value - self.qpos(data, joint))
+                for joint, value in zip(joints, solution, strict=True)}
+
+    def targets(self, joints: dict[str, float]) -> np.ndarray:
+        """One position target per actuator: ``joints`` by name, 0 for the others."""
+        targets = np.zeros(self.model.nu)
+        for joint, value in joints.items():
+            targets[self.actuator_of[joint]] = value
+        return targets
+
     def action(self, data: mujoco.MjData, targets: np.ndarray) -> np.ndarray:
         """The normalised action whose servos hold ``targets`` (one per actuator) against the
         current bias forces (gravity, Coriolis), clipped to [-1, 1]."""
         gain, bias = self.model.actuator_gainprm[:, 0], -self.model.actuator_biasprm[:, 1]
         ctrl = (bias * targets + data.qfrc_bias[self._dof_of_actuator]) / gain
         return np.clip((ctrl - self._action_mean) / self._action_scale, -1.0, 1.0)
+
+
+def _grasp(closure: float, thumb: dict[str, float]) -> dict[str, float]:
+    """Hand targets of a grasp: every finger flexed to ``closure``, the thumb as given."""
+    return {**dict.fromkeys(FINGER_FLEXION, closure), **thumb}
 
 
 def _rotate_z(vector: np.ndarray, angle: float) -> np.ndarray:
@@ -135,6 +154,7 @@ class DoorControllerConfig:
 
 
 _DOOR_ARM = ("ARTz", "ARRx", "ARRy")
+_DOOR_THUMB = {"THJ3": 1.0, "THJ4": 0.5}  # across the lever, against the curled fingers
 
 
 def door_action(kinematics: HandKinematics, data: mujoco.MjData, config: DoorControllerConfig) -> np.ndarray:
@@ -182,17 +202,11 @@ def door_action(kinematics: HandKinematics, data: mujoco.MjData, config: DoorCon
     else:
         goal, closed = handle, False
 
-    targets = np.zeros(model.nu)
-    arm = kinematics.solve(data, "S_grasp", goal, _DOOR_ARM, fixed={"ARRz": roll})
-    for joint, solution in zip(_DOOR_ARM, arm, strict=True):
-        current = kinematics.qpos(data, joint)
-        targets[kinematics.actuator_of[joint]] = current + gain * (solution - current)
-    targets[kinematics.actuator_of["ARRz"]] = roll
+    solution = kinematics.solve(data, "S_grasp", goal, _DOOR_ARM, fixed={"ARRz": roll})
+    joints = {**kinematics.lead(data, _DOOR_ARM, solution, gain), "ARRz": roll}
     if closed:
-        for joint in FINGER_FLEXION:
-            targets[kinematics.actuator_of[joint]] = config.grasp_closure
-        targets[kinematics.actuator_of["THJ3"]], targets[kinematics.actuator_of["THJ4"]] = 1.0, 0.5
-    return kinematics.action(data, targets)
+        joints.update(_grasp(config.grasp_closure, _DOOR_THUMB))
+    return kinematics.action(data, kinematics.targets(joints))
 
 
 @dataclass(frozen=True)
@@ -252,7 +266,6 @@ def hammer_action(kinematics: HandKinematics, data: mujoco.MjData, config: Hamme
     closure = float(np.mean([kinematics.qpos(data, joint) for joint in FINGER_FLEXION]))
     grasp = HAMMER_START + np.array([config.grasp_x, config.grasp_y, config.grasp_z])
     to_grasp = float(np.linalg.norm(palm - grasp))
-    targets = np.zeros(model.nu)
     closed = True
     if hammer[2] > 0.06 and closure > 0.65 * config.grasp_closure:  # held off the table: aim, then strike
         pitch = kinematics.qpos(data, "ARRx") + config.pitch_gain * (head[2] - nail[2])
@@ -262,7 +275,7 @@ def hammer_action(kinematics: HandKinematics, data: mujoco.MjData, config: Hamme
             yaw -= config.swing  # strike: sweep the head along the nail's axis
         else:
             yaw = config.aim_yaw
-        arm = {"ARRx": pitch, "ARRy": yaw, "WRJ1": config.extension, "WRJ0": config.deviation}
+        joints = {"ARRx": pitch, "ARRy": yaw, "WRJ1": config.extension, "WRJ0": config.deviation}
     else:
         if closure > 0.65 * config.grasp_closure and to_grasp < 0.06:  # grasped (the neck stops the fingers): lift
             goal = grasp + np.array([0.0, 0.0, config.lift])
@@ -274,18 +287,10 @@ def hammer_action(kinematics: HandKinematics, data: mujoco.MjData, config: Hamme
         else:
             goal, closed = grasp, False
         solution = kinematics.solve(data, "S_grasp", goal, _HAMMER_ARM)
-        arm = {}
-        for joint, value in zip(_HAMMER_ARM, solution, strict=True):
-            current = kinematics.qpos(data, joint)
-            arm[joint] = current + config.arm_gain * (value - current)
-    for joint, value in arm.items():
-        targets[kinematics.actuator_of[joint]] = value
+        joints = kinematics.lead(data, _HAMMER_ARM, solution, config.arm_gain)
     if closed:
-        for joint in FINGER_FLEXION:
-            targets[kinematics.actuator_of[joint]] = config.grasp_closure
-        for joint, value in _HAMMER_THUMB.items():
-            targets[kinematics.actuator_of[joint]] = value
-    return kinematics.action(data, targets)
+        joints.update(_grasp(config.grasp_closure, _HAMMER_THUMB))
+    return kinematics.action(data, kinematics.targets(joints))
 
 
 CONTROLLERS = {"door": (door_action, DoorControllerConfig), "hammer": (hammer_action, HammerControllerConfig)}
