@@ -37,7 +37,7 @@ import torch
 from torch import nn
 from torch.func import functional_call
 
-from d2a_agents.policy.edm import EDM, EDMConfig, karras_sigmas, network_time
+from d2a_agents.policy.edm import EDM, EDMConfig, karras_sigmas
 from d2a_agents.policy.meanflow import draw, per_sample
 
 
@@ -71,8 +71,7 @@ class ConsistencyTrajectory:
     def denoiser(self, net: Network, x: torch.Tensor, t: torch.Tensor, s: torch.Tensor,
                  cond: torch.Tensor) -> torch.Tensor:
         """g(x, t, s): the network's clean-chunk estimate, EDM-scaled at t, told the target level s."""
-        c_skip, c_out, c_in = (per_sample(c, x) for c in self.edm.scalings(t))
-        return c_skip * x + c_out * net(c_in * x, network_time(s), network_time(t), cond)
+        return self.edm.denoise(net, x, t, cond, target=s)
 
     def jump(self, net: Network, x: torch.Tensor, t: torch.Tensor, s: torch.Tensor,
              cond: torch.Tensor) -> torch.Tensor:
@@ -105,14 +104,9 @@ class ConsistencyTrajectory:
         estimate = self.jump(held, self.jump(net, x_t, t, s, cond), s, sigma_min, cond)
         trajectory = (estimate - target).pow(2).flatten(1).mean(dim=1).mean()
 
-        data = self.config.edm.sigma_data
-        sigma = (self.config.edm.p_mean + self.config.edm.p_std * draw("randn", (batch,), actions, generator)).exp()
-        noisy = actions + per_sample(sigma, actions) * draw("randn", tuple(actions.shape), actions, generator)
-        weight = per_sample((sigma**2 + data**2) / (sigma * data) ** 2, actions)
-        error = (self.denoiser(net, noisy, sigma, sigma, cond) - actions).pow(2)
-        denoising = (weight * error).mean()
+        denoising, info = self.edm.loss(net, actions, cond, generator)  # g(., t, t) is EDM's denoiser
         loss = trajectory + self.config.dsm_weight * denoising
-        return loss, {"loss": loss.item(), "trajectory": trajectory.item(), "mse": error.mean().item()}
+        return loss, {"loss": loss.item(), "trajectory": trajectory.item(), "mse": info["mse"]}
 
     @torch.no_grad()
     def sample(

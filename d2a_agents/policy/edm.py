@@ -77,11 +77,14 @@ class EDM:
         norm = (sigma**2 + data**2).sqrt()
         return data**2 / norm**2, sigma * data / norm, 1 / norm
 
-    def denoise(self, net: nn.Module, x: torch.Tensor, sigma: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        """D(x; sigma): the network's estimate of the clean chunk, ``sigma`` (B,)."""
+    def denoise(self, net: nn.Module, x: torch.Tensor, sigma: torch.Tensor, cond: torch.Tensor,
+                target: torch.Tensor | None = None) -> torch.Tensor:
+        """D(x; sigma): the network's estimate of the clean chunk, ``sigma`` (B,). ``target``
+        (B,), the level the network is told the estimate is for (its first time input), is
+        ``sigma`` for EDM itself; the consistency student passes the level it jumps to."""
         c_skip, c_out, c_in = (per_sample(c, x) for c in self.scalings(sigma))
-        time = network_time(sigma)
-        return c_skip * x + c_out * net(c_in * x, time, time, cond)
+        return c_skip * x + c_out * net(c_in * x, network_time(sigma if target is None else target),
+                                        network_time(sigma), cond)
 
     def loss(
         self, net: nn.Module, actions: torch.Tensor, cond: torch.Tensor, generator: torch.Generator | None = None
