@@ -27,7 +27,7 @@ import torch
 from tqdm import tqdm
 
 import d2a_envs
-from collectors.collect import CollectConfig, collect
+from collectors.collect import DART_MAX_ATTEMPTS_FACTOR, CollectConfig, collect, dart_tag
 from collectors.envs import STATE_KEY, make_torchrl_env
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
 from collectors.experts import expert_env_kwargs, make_expert
@@ -85,11 +85,12 @@ def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
     """``mp1-state`` trained (``cpu`` preset, one thread) on ``imitation_demos`` of the expert's
     demonstrations of ``task`` (collected with ``imitation_dart_noise``), its final checkpoint
     on ``imitation_episodes`` new layouts."""
-    dart = f"_dart{config.imitation_dart_noise:g}" if config.imitation_dart_noise else ""
+    dart = dart_tag(config.imitation_dart_noise)
     data = Path(config.workdir) / "data" / f"{task}{dart}"
+    attempts = {"max_attempts_factor": DART_MAX_ATTEMPTS_FACTOR} if dart else {}
     collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.imitation_demos, append=True,
-                          env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise,
-                          max_attempts_factor=10 if dart else 3, progress=False))
+                          env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise, progress=False,
+                          **attempts))
     preset = POLICY_PRESETS["cpu"]
     run = Path(config.workdir) / "runs" / f"{task}_mp1-state_d{config.imitation_demos}{dart}"
     train_policy(TrainPolicyConfig.from_preset(

@@ -54,7 +54,7 @@ from typing import TypeVar
 from tqdm import tqdm
 
 from collectors.atomic import DirectoryBusyError, atomic_write_text, exclusive_writer
-from collectors.collect import CollectConfig, collect
+from collectors.collect import DART_MAX_ATTEMPTS_FACTOR, CollectConfig, collect, dart_tag
 from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
 from d2a_agents.policy.agent import uses_imagination
@@ -193,7 +193,8 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     data = Path(config.workdir) / "data" / f"{task}{_dart_tag(config)}"
     _when_free(lambda: collect(CollectConfig(
         tasks=(task,), out=str(data), episodes=config.pool or config.demos, seed=0, append=True,
-        env_kwargs=config.env_kwargs, dart_noise=config.dart_noise, max_attempts_factor=10 if config.dart_noise else 3,
+        env_kwargs=config.env_kwargs, dart_noise=config.dart_noise,
+        **({"max_attempts_factor": DART_MAX_ATTEMPTS_FACTOR} if config.dart_noise else {}),
         progress=config.ray_address is None, ray_address=config.ray_address,
     )), f"{task} demonstrations")
     if config.wm_rollouts:
@@ -293,7 +294,7 @@ def _rollouts_tag(config: SuccessBenchConfig) -> str:
 
 
 def _dart_tag(config: SuccessBenchConfig) -> str:
-    return f"_dart{config.dart_noise:g}" if config.dart_noise else ""
+    return dart_tag(config.dart_noise)
 
 
 def _demos_tag(config: SuccessBenchConfig) -> str:
