@@ -173,6 +173,18 @@ def cmd_data_import(args: argparse.Namespace) -> None:
         if args.task is None:
             raise ValueError("--dp3 needs --task: the task its episodes show")
         dataset = import_dp3(args.dp3, args.out, args.task, _env_kwargs(args) or None, overwrite=args.overwrite)
+    elif args.lerobot:
+        import d2a_envs
+        from collectors.lerobot_format import import_lerobot
+
+        if args.task is None:
+            raise ValueError("--lerobot needs --task: the task its episodes show")
+        suite = d2a_envs.SUITE_DEFAULTS[d2a_envs.get_task(args.task).suite]
+        dataset = import_lerobot(
+            args.lerobot, args.out, args.task, cloud_key=args.cloud_key, depth_key=args.depth_key, camera=args.camera,
+            depth_scale=args.depth_scale, crop_box=args.crop_box or suite.crop_box,
+            num_points=args.num_points or suite.num_points, state_key=args.state_key,
+            full_state_key=args.full_state_key, env_kwargs=_env_kwargs(args) or None, overwrite=args.overwrite)
     else:
         import json
 
@@ -642,16 +654,31 @@ def build_parser() -> argparse.ArgumentParser:
     data_info = data.add_parser("info", help="episodes, lengths, success, point counts, size on disk")
     data_info.add_argument("dir")
     data_info.set_defaults(func=cmd_data_info)
-    data_import = data.add_parser("import", help="a DP3 / MP1 zarr or a recording of real episodes into a data set")
+    data_import = data.add_parser("import", help="a DP3 / MP1 zarr, a LeRobot data set or a recording of real "
+                                                 "episodes into a data set")
     source = data_import.add_mutually_exclusive_group(required=True)
     source.add_argument("--dp3", metavar="ZARR", help="a DP3 / MP1 zarr (data/point_cloud, state, action, "
                                                      "meta/episode_ends)")
     source.add_argument("--recording", metavar="DIR", help="a recording (collectors/recording.py): its frames are "
                                                          "fused into clouds with --crop-box and --num-points")
+    source.add_argument("--lerobot", metavar="DIR", help="a LeRobot data set (format v2.x or v3.0) with a point-cloud "
+                                                        "feature, or a depth array fused with --camera")
     data_import.add_argument("--out", required=True, help="data set directory to create")
     data_import.add_argument("--overwrite", action="store_true", help="replace an existing data set")
-    data_import.add_argument("--task", default=None, help="the task a DP3 zarr's episodes show (see `d2a tasks`)")
+    data_import.add_argument("--task", default=None, help="the task a DP3 zarr's or a LeRobot data set's episodes "
+                                                          "show (see `d2a tasks`)")
     _add_cloud_options(data_import)  # the env options whose clouds match the file's
+    lerobot = data_import.add_argument_group("LeRobot data sets (--lerobot)")
+    lerobot.add_argument("--cloud-key", default=None, help="the point-cloud feature, (P, 3) or (P, 6) "
+                                                           "(default: observation.point_cloud or .pointcloud)")
+    lerobot.add_argument("--camera", metavar="JSON", default=None,
+                         help="fuse a depth feature instead: a file with the camera's intrinsics {fx, fy, cx, cy} "
+                              "and its 4x4 camera-to-base pose (OpenCV axes); --crop-box and --num-points apply")
+    lerobot.add_argument("--depth-key", default=None, help="the depth feature, (H, W) (default: observation.depth)")
+    lerobot.add_argument("--depth-scale", type=_finite_at_least(1e-6), default=1.0,
+                         help="metres per depth unit (0.001: millimetres; default 1)")
+    lerobot.add_argument("--state-key", default="observation.state", help="the feature read as agent_pos")
+    lerobot.add_argument("--full-state-key", default=None, help="the feature read as state (default: --state-key's)")
     data_import.set_defaults(func=cmd_data_import)
     data_export = data.add_parser("export", help="a data set here as a DP3 / MP1 zarr")
     data_export.add_argument("dir", help="data set directory (d2a collect)")
