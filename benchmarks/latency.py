@@ -1,8 +1,9 @@
 """Inference latency at batch 1 on the CPU (``d2a bench latency``).
 
 D2A's MeanFlow expert (1 network evaluation per chunk) against the DP3-style diffusion
-expert (10 DDIM evaluations) and the FlowPolicy-style consistency flow (1), with the same
-encoders and network, and the world model's
+expert (10 DDIM evaluations), the FlowPolicy-style consistency flow (1), the Consistency
+Policy's EDM teacher and student, with the same encoders and network, the 2D Diffusion
+Policy (the same diffusion on a ResNet-18's features of a camera image), and the world model's
 imagination (voxelize, encode, decode near the present, FPS) per control step. The policies'
 latency does not depend on the weights, so freshly initialised ones are timed on real clouds
 of a D2A env. An untrained world model does not know what moves, so it decodes the whole band
@@ -40,6 +41,7 @@ class LatencyBenchConfig:
 
     task: str = "hammer"
     num_points: int = 1024
+    rgb_image_size: int = 84  # the 2D Diffusion Policy's images (DP3's Meta-World size)
     repeats: int = 50
     world_models: tuple[WorldModelConfig, ...] = (WorldModelConfig(resolution=(32, 32, 8)), CPU_PRESET)
     world_model: str | None = None  # a trained checkpoint, timed on ``data``
@@ -78,12 +80,19 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
     results = {}
     policies = {algo: PolicyConfig(algo=algo, num_points=config.num_points)
                 for algo in ("d2a", "mp1", "dp3", "flowpolicy", "edm", "cp")}
+    policies["dp"] = PolicyConfig(algo="dp")
     policies["d2a cpu preset"] = dataclasses.replace(CPU_POLICY_PRESET, algo="d2a")
+    policies["dp cpu preset"] = dataclasses.replace(CPU_POLICY_PRESET, algo="dp")
+    # A policy's latency does not depend on what its image shows: an empty one of the size it reads.
+    image = torch.zeros(config.rgb_image_size, config.rgb_image_size, 3, dtype=torch.uint8)
     for name, policy_config in policies.items():
         policy = Policy(policy_config, action_dim, state_dim, normalizers).eval()
-        points = cloud[: policy_config.num_points]
-        window = {"point_cloud": points.expand(1, policy_config.n_obs_steps, -1, -1),
-                  "agent_pos": torch.as_tensor(observation["agent_pos"]).expand(1, policy_config.n_obs_steps, -1)}
+        steps = policy_config.n_obs_steps
+        window = {"agent_pos": torch.as_tensor(observation["agent_pos"]).expand(1, steps, -1)}
+        if policy_config.encoder.use_cloud:
+            window["point_cloud"] = cloud[: policy_config.num_points].expand(1, steps, -1, -1)
+        if policy_config.encoder.use_image:
+            window["image"] = image.expand(1, steps, -1, -1, -1)
         if policy_config.encoder.use_imagination:
             window["imagined_point_cloud"] = window["point_cloud"]
         results[name] = median_seconds(lambda p=policy, w=window: p.predict_action_chunk(w), config.repeats)
@@ -112,8 +121,12 @@ def run(config: LatencyBenchConfig = LatencyBenchConfig()) -> dict[str, float]:
     print(f"| EDM policy (Heun, {EDMConfig().inference_steps} steps; the Consistency Policy's teacher), the same "
           f"single encoder | {2 * EDMConfig().inference_steps - 1} | {1000 * results['edm']:.2f} |")
     print(f"| Consistency Policy student (one jump), the same single encoder | 1 | {1000 * results['cp']:.2f} |")
+    print(f"| 2D Diffusion Policy (DDIM; ResNet-18 on a {config.rgb_image_size}-pixel image) | 10 | "
+          f"{1000 * results['dp']:.2f} |")
     print(f"| D2A policy, cpu preset ({CPU_POLICY_PRESET.num_points} points) | 1 | "
           f"{1000 * results['d2a cpu preset']:.2f} |")
+    print(f"| 2D Diffusion Policy, cpu preset (a quarter of ResNet-18's widths) | 10 | "
+          f"{1000 * results['dp cpu preset']:.2f} |")
     for name, seconds in results.items():
         if name.startswith("imagination"):
             print(f"| world model {name} | 1 | {1000 * seconds:.2f} |")

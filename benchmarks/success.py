@@ -57,7 +57,7 @@ from collectors.atomic import DirectoryBusyError, atomic_write_text, exclusive_w
 from collectors.collect import DART_MAX_ATTEMPTS_FACTOR, CollectConfig, collect, dart_tag
 from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
-from d2a_agents.policy.agent import uses_imagination
+from d2a_agents.policy.agent import reads_images, uses_imagination
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, evaluate_checkpoint
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
@@ -112,6 +112,10 @@ class SuccessBenchConfig:
     # gym.make options of the demonstrations (and so of every evaluation), e.g. the dense clouds
     # {"image_size": 256, "num_points": 4096, "backend": "render"} that the 128x128x32 world model reads.
     env_kwargs: dict[str, object] = field(default_factory=dict)
+    # Side in pixels of the camera images stored with the demonstrations when an algo reads them
+    # (dp; DP3's Meta-World images are 84 pixels): their own data set (``_rgb<side>``), which
+    # every algo of such a bench then trains on (the same demonstrations, images added).
+    rgb_image_size: int = 84
 
     def __post_init__(self) -> None:
         if self.pool is not None and self.pool < self.demos:
@@ -187,20 +191,28 @@ def _when_free(work: Callable[[], Result], what: str, poll_seconds: float = 10.0
             time.sleep(poll_seconds)
 
 
+def _data_env_kwargs(config: SuccessBenchConfig) -> dict[str, object]:
+    """The env options of the bench's demonstrations: the config's, and images where an algo reads them."""
+    images = any(map(reads_images, config.algos))
+    return {**config.env_kwargs, **({"rgb_image_size": config.rgb_image_size} if images else {})}
+
+
 def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     """The task's demonstrations in the workdir: collected, or a collection cut short completed
     (``collect`` refuses a data set collected with other env settings)."""
-    data = Path(config.workdir) / "data" / f"{task}{_dart_tag(config)}"
+    env_kwargs = _data_env_kwargs(config)
+    images = f"_rgb{env_kwargs['rgb_image_size']}" if "rgb_image_size" in env_kwargs else ""
+    data = Path(config.workdir) / "data" / f"{task}{_dart_tag(config)}{images}"
     _when_free(lambda: collect(CollectConfig(
         tasks=(task,), out=str(data), episodes=config.pool or config.demos, seed=0, append=True,
-        env_kwargs=config.env_kwargs, dart_noise=config.dart_noise,
+        env_kwargs=env_kwargs, dart_noise=config.dart_noise,
         **({"max_attempts_factor": DART_MAX_ATTEMPTS_FACTOR} if config.dart_noise else {}),
         progress=config.ray_address is None, ray_address=config.ray_address,
     )), f"{task} demonstrations")
     if config.wm_rollouts:
         _when_free(lambda: collect(CollectConfig(
             tasks=(task,), out=str(data), episodes=config.wm_rollouts, seed=ROLLOUT_SEED, append=True,
-            env_kwargs=config.env_kwargs, action_noise=config.rollout_noise, keep_failures=True,
+            env_kwargs=env_kwargs, action_noise=config.rollout_noise, keep_failures=True,
             progress=config.ray_address is None, ray_address=config.ray_address,
         )), f"{task} rollouts")
     return data

@@ -6,8 +6,9 @@ Layout of a data set directory::
     DIR/buffer/              TensorDictReplayBuffer over LazyMemmapStorage (``rb.dumps``)
 
 One row of the buffer is one control step: the observation before the step
-(``point_cloud``, ``agent_pos``, ``state``), the ``action`` taken, the step's ``reward`` and
-``success``, and where it sits (``episode``, ``step``). Episodes are stored contiguously.
+(``point_cloud``, ``agent_pos``, ``state``, and ``image`` in a data set collected with one),
+the ``action`` taken, the step's ``reward`` and ``success``, and where it sits (``episode``,
+``step``). Episodes are stored contiguously.
 The metadata file is the source of truth: it is replaced atomically after each complete
 episode, so a collection killed midway leaves every finished episode readable, and rows
 written after the last metadata update are ignored (and overwritten by ``--append``).
@@ -29,6 +30,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 
 from collectors.atomic import atomic_write_text, holds_only_lock, is_lock_file
+from d2a_envs.wrappers import IMAGE_KEY
 
 # A rollout's expert action where the executed ``action`` was perturbed (DART noise): the label stored.
 EXPERT_ACTION_KEY = "expert_action"
@@ -39,6 +41,8 @@ FORMAT_VERSION = 2
 METADATA_FILE = "d2a_dataset.json"
 BUFFER_DIR = "buffer"
 FRAME_KEYS = ("point_cloud", "agent_pos", "state", "action", "reward", "success", "episode", "step")
+# Stored where the env had them (``rgb_image_size``): in every row of a data set, or in none.
+OPTIONAL_FRAME_KEYS = (IMAGE_KEY,)
 VERSIONED_PACKAGES = ("d2a", "metaworld", "mujoco", "gymnasium", "gymnasium-robotics", "torch", "torchrl", "tensordict")
 
 
@@ -128,7 +132,7 @@ def _check_buffer_files(storage: Path, capacity: int) -> None:
         layout = json.loads(layout_path.read_text())
     except (OSError, json.JSONDecodeError) as error:
         raise DatasetError(f"{layout_path} is unreadable ({error}): the data set is damaged") from error
-    for key in FRAME_KEYS:
+    for key in FRAME_KEYS + tuple(key for key in OPTIONAL_FRAME_KEYS if key in layout):
         entry = layout.get(key)
         path = storage / f"{key}.memmap"
         if not isinstance(entry, dict) or not path.is_file():
@@ -315,9 +319,14 @@ class DemoDataset:
         missing = [key for key in FRAME_KEYS if key not in frames.keys()]
         if missing:
             raise ValueError(f"episode frames lack {missing}")
+        keys = FRAME_KEYS + tuple(key for key in OPTIONAL_FRAME_KEYS if key in frames.keys())
+        stored = self.frame_keys
+        if self.num_frames and set(keys) != set(stored):
+            raise DatasetError(f"{self.directory} stores {sorted(stored)} per step; this episode has "
+                               f"{sorted(keys)} (images are stored in every episode of a data set or in none)")
         self.ensure_capacity(frames.shape[0])
         record.start, record.length = self.metadata.num_frames, frames.shape[0]
-        self.buffer.extend(frames.select(*FRAME_KEYS))
+        self.buffer.extend(frames.select(*keys))
         self.buffer.dumps(self.directory / BUFFER_DIR)
         self.metadata.episodes.append(record)
         self._save_metadata()
@@ -331,6 +340,12 @@ class DemoDataset:
     @property
     def num_frames(self) -> int:
         return self.metadata.num_frames
+
+    @property
+    def frame_keys(self) -> tuple[str, ...]:
+        """What each stored step holds: :data:`FRAME_KEYS`, plus ``image`` where the data set has them."""
+        stored = self.frames().keys() if self.num_frames else ()
+        return FRAME_KEYS + tuple(key for key in OPTIONAL_FRAME_KEYS if key in stored)
 
     def frames(self) -> TensorDict:
         """Every stored step in order, as a memory-mapped TensorDict (no copy)."""
@@ -363,8 +378,10 @@ class DemoDataset:
 def episode_frames(rollout: TensorDictBase, episode_index: int) -> TensorDict:
     """Turn one TorchRL trajectory (batch = steps) into the stored row layout."""
     steps = rollout.shape[0]
+    images = {IMAGE_KEY: rollout[IMAGE_KEY]} if IMAGE_KEY in rollout.keys() else {}
     return TensorDict(
         {
+            **images,
             "point_cloud": rollout["point_cloud"],
             "agent_pos": rollout["agent_pos"],
             "state": rollout["observation"],
@@ -385,7 +402,9 @@ def describe(dataset: DemoDataset) -> str:
              f"{dataset.size_on_disk() / 2**20:.1f} MiB on disk (format {meta.format} v{meta.format_version})"]
     if meta.num_frames:
         frames = dataset.frames()
-        shapes = {key: tuple(frames[key].shape[1:]) for key in ("point_cloud", "agent_pos", "state", "action")}
+        keys = ("point_cloud", "agent_pos", "state", "action") + tuple(
+            key for key in OPTIONAL_FRAME_KEYS if key in frames.keys())
+        shapes = {key: tuple(frames[key].shape[1:]) for key in keys}
         lines.append(", ".join(f"{key} {shape}" for key, shape in shapes.items()))
     header = ("task", "kept", "tried", "length min/mean/max", "success", "min pts in crop")
     lines.append(f"{header[0]:<22} {header[1]:>5} {header[2]:>6} {header[3]:>20} {header[4]:>8} {header[5]:>16}")

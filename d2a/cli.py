@@ -13,7 +13,7 @@ from collectors.ray_jobs import JobsLost  # the standard library only: `d2a --he
 
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
 ALGOS = ("d2a", "d2a-change", "d2a-change-top", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "mp1", "dp3",
-         "flowpolicy", "edm", "cp", "mp1-state")
+         "flowpolicy", "edm", "cp", "dp", "mp1-state")
 EVAL_LAYOUTS = ("fixed", "fresh")  # d2a_agents.policy.train.EVAL_LAYOUTS, likewise
 EXPERT_KINDS = ("controller", "planner")  # collectors.adroit_experts.EXPERT_KINDS, likewise
 
@@ -75,6 +75,9 @@ def _add_cloud_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-points", type=POSITIVE, default=None)
     parser.add_argument("--crop-box", type=_parse_box, default=None, help="x0,y0,z0,x1,y1,z1 in metres")
     parser.add_argument("--hide-sites", action="store_true", help="leave MuJoCo sites (goal markers) out")
+    parser.add_argument("--rgb-image-size", type=POSITIVE, default=None, metavar="PIXELS",
+                        help="add the first camera's colour image (PIXELS a side) to the observations: what "
+                             "--algo dp reads (stored per step by d2a collect; lit with --backend render)")
 
 
 def _add_ray_option(parser: argparse.ArgumentParser) -> None:
@@ -111,7 +114,8 @@ def _replace_given(instance: Any, **changes: object) -> Any:
 
 
 def _env_kwargs(args: argparse.Namespace) -> dict[str, object]:
-    kwargs = dict(backend=args.backend, image_size=args.image_size, num_points=args.num_points, crop_box=args.crop_box)
+    kwargs = dict(backend=args.backend, image_size=args.image_size, num_points=args.num_points, crop_box=args.crop_box,
+                  rgb_image_size=args.rgb_image_size)
     if args.cameras:
         kwargs["cameras"] = tuple(args.cameras.split(","))
     if args.hide_sites:
@@ -283,7 +287,8 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
     from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 
     preset = _replace_given(POLICY_PRESETS[args.preset], steps=args.steps, batch_size=args.batch_size,
-                            learning_rate=args.lr, trim_after_success=args.trim_after_success)
+                            image_batch_size=args.batch_size, learning_rate=args.lr,
+                            trim_after_success=args.trim_after_success)
     policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
                             n_action_steps=args.n_action_steps, num_points=args.policy_points,
                             imagined_points=args.imagined_points,
@@ -426,6 +431,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
         eval_layouts=args.eval_layouts, demos=args.demos, pool=args.pool, cells=args.cells,
         wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise, dart_noise=args.dart_noise,
+        rgb_image_size=args.rgb_image_size,
     ))
 
 
@@ -569,7 +575,8 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--data", required=True)
     train_policy.add_argument("--out", required=True, help="run directory; an existing run is resumed")
     train_policy.add_argument("--algo", choices=ALGOS, default="d2a",
-                              help="mp1-state: the privileged-state reference (no cloud; the perception upper bound)")
+                              help="mp1-state: the privileged-state reference (no cloud; the perception upper "
+                                   "bound); dp: the 2D Diffusion Policy (data collected with --rgb-image-size)")
     train_policy.add_argument("--world-model", default=None, help="checkpoint of d2a train-wm (d2a variants)")
     train_policy.add_argument("--teacher", default=None,
                               help="--algo cp: the EDM teacher it distils (policy.pt of --algo edm, same data)")
@@ -796,6 +803,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_eval_layouts_option(bench_success)
     bench_success.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
     bench_success.add_argument("--image-size", type=POSITIVE, default=None, help="depth image size of the data")
+    bench_success.add_argument("--rgb-image-size", type=POSITIVE, default=None, metavar="PIXELS",
+                               help="side of the colour images stored for an algo that reads them (dp; default 84)")
     bench_success.add_argument("--num-points", type=POSITIVE, default=None, help="points of the env's clouds")
     bench_success.add_argument("--backend", choices=("raycast", "render"), default=None)
     bench_success.add_argument("--world-model", choices=("demo", "cpu"), default=None,

@@ -243,8 +243,17 @@ def _claim_gl_for_this_process() -> None:
     _gl_owner_pid = os.getpid()
 
 
+# Scene effects the ``render`` backend leaves out of its colour images (see RenderDepth).
+PLAIN_RENDER_OFF = (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION, mujoco.mjtRndFlag.mjRND_SKYBOX)
+
+
 class RenderDepth:
-    """Depth from MuJoCo's OpenGL renderer, created lazily so forked workers stay safe."""
+    """Depth from MuJoCo's OpenGL renderer, created lazily so forked workers stay safe.
+
+    Its colour images are lit and textured but drawn without shadows, reflections or the
+    skybox: with them a software renderer (OSMesa, EGL on llvmpipe) takes about 8x longer per
+    image (200 against 26 ms at 84 pixels, one core) for what a policy does not need.
+    """
 
     name = "render"
 
@@ -270,6 +279,8 @@ class RenderDepth:
                 self._renderer = mujoco.Renderer(model, height=self.height, width=self.width)
             except Exception as error:  # GL context creation fails in many library-specific ways
                 raise RuntimeError(f"{missing_gl_message(bound_gl_platform())} (cause: {error})") from error
+            for effect in PLAIN_RENDER_OFF:
+                self._renderer.scene.flags[effect] = False
             self._model = model
         return self._renderer
 

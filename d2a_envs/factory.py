@@ -12,7 +12,7 @@ from d2a_envs.sampling import CropBox
 from d2a_envs.suites.adroit import AdroitEnv
 from d2a_envs.suites.base import SuiteEnv
 from d2a_envs.suites.metaworld import MetaWorldEnv
-from d2a_envs.wrappers import PointCloudObservation
+from d2a_envs.wrappers import CameraImageObservation, PointCloudObservation
 
 _SUITE_ENVS: dict[str, type[SuiteEnv]] = {"metaworld": MetaWorldEnv, "adroit": AdroitEnv}
 # Wrappers that packages above this one provide by name (``world_model``: the imagination
@@ -40,6 +40,7 @@ def make_env(
     backend: str | None = None,
     with_rgb: bool | None = None,
     show_sites: bool | None = None,
+    rgb_image_size: int | None = None,
     state_obs: bool = True,
     physics_obs: bool = False,
     world_model: str | None = None,
@@ -56,6 +57,8 @@ def make_env(
     which spares a farthest-point pass over thousands of points at every step); ``imagined_output``
     ("future", the default, or "change") says what it holds.
     ``physics_obs`` (Adroit) adds the ``physics`` vector that the planning experts read.
+    ``rgb_image_size`` adds ``image``, the first camera's colour view at that many pixels a side
+    (:class:`~d2a_envs.wrappers.CameraImageObservation`, the input of ``--algo dp``).
     """
     if suite not in _SUITE_ENVS:
         raise ValueError(f"unknown suite {suite!r}; choose one of {sorted(_SUITE_ENVS)}")
@@ -69,6 +72,8 @@ def make_env(
             raise ValueError(f"physics_obs is available for Adroit tasks, not {suite}")
         suite_kwargs["physics_obs"] = True
     env = PointCloudObservation(_SUITE_ENVS[suite](task, **suite_kwargs), config)
+    if rgb_image_size is not None:
+        env = CameraImageObservation(env, config.cameras[0], rgb_image_size, config.backend, config.show_sites)
     if (imagined_points is not None or imagined_output is not None) and world_model is None:
         raise ValueError("imagined_points and imagined_output need a world_model")
     if world_model is not None:

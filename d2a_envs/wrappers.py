@@ -1,4 +1,5 @@
-"""Gymnasium wrapper that adds a fused, cropped, farthest-point-sampled point cloud."""
+"""Gymnasium wrappers: the point-cloud observation, a camera's colour image, per-episode seeds,
+episodes that end at success."""
 
 from __future__ import annotations
 
@@ -8,7 +9,12 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from d2a_envs.camera import camera_id
+from d2a_envs.depth import make_depth_backend
 from d2a_envs.sensor import PointCloudConfig, PointCloudSensor
+
+# The colour image observation of 2D image policies (``--algo dp``).
+IMAGE_KEY = "image"
 
 
 def point_cloud_space(config: PointCloudConfig) -> spaces.Box:
@@ -60,6 +66,49 @@ class PointCloudObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def close(self) -> None:
         self.sensor.close()
+        super().close()
+
+
+class CameraImageObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """Add ``image``: one camera's colour view, (size, size, 3) uint8, the input of 2D policies.
+
+    The same depth backends draw it: ``render`` gives MuJoCo's lit image, ``raycast`` the flat
+    colour of the geom (or visible site) each pixel sees, black where it sees nothing (no
+    lighting, no OpenGL).
+
+    Example:
+        >>> env = CameraImageObservation(MetaWorldEnv("hammer-v3"), camera="corner4", size=84)
+        >>> env.reset(seed=0)[0]["image"].shape
+        (84, 84, 3)
+    """
+
+    def __init__(self, env: gym.Env, camera: str, size: int, backend: str = "raycast", show_sites: bool = True) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, camera=camera, size=size, backend=backend, show_sites=show_sites)
+        gym.Wrapper.__init__(self, env)
+        if not isinstance(env.observation_space, spaces.Dict):
+            raise TypeError(f"CameraImageObservation needs a Dict observation space, got {env.observation_space}")
+        if isinstance(size, bool) or int(size) != size or size < 8:
+            raise ValueError(f"the image size must be an integer of at least 8 pixels, got {size!r}")
+        self._camera = camera_id(env.unwrapped.model, camera)
+        self._backend = make_depth_backend(backend, int(size), int(size), show_sites)
+        image_space = spaces.Box(0, 255, (int(size), int(size), 3), np.uint8)
+        self.observation_space = spaces.Dict({**env.observation_space.spaces, IMAGE_KEY: image_space})
+
+    def _add_image(self, observation: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        base = self.env.unwrapped
+        rgb = self._backend.capture(base.model, base.data, self._camera, with_rgb=True).rgb
+        return {**observation, IMAGE_KEY: np.round(np.clip(rgb, 0.0, 1.0) * 255).astype(np.uint8)}
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        observation, info = self.env.reset(seed=seed, options=options)
+        return self._add_image(observation), info
+
+    def step(self, action: np.ndarray):
+        observation, reward, terminated, truncated, info = self.env.step(action)
+        return self._add_image(observation), reward, terminated, truncated, info
+
+    def close(self) -> None:
+        self._backend.close()
         super().close()
 
 

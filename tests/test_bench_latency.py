@@ -15,10 +15,10 @@ def test_bench_latency_times_policies_and_world_models(reach_data, tmp_path, cap
     train_world_model(TrainWorldModelConfig(
         data=reach_data, out=str(world_model), model=WorldModelConfig(resolution=(16, 16, 8), channels=4), steps=1,
         batch_size=2, queries=64, validate_every=1, validation_stride=50, progress=False))
-    results = run(LatencyBenchConfig(task="reach", num_points=64, repeats=2,
+    results = run(LatencyBenchConfig(task="reach", num_points=64, repeats=2, rgb_image_size=40,
                                      world_models=(WorldModelConfig(resolution=(8, 8, 4), channels=4),),
                                      world_model=str(world_model), data=reach_data))
-    expected = {"d2a", "mp1", "dp3", "flowpolicy", "edm", "cp", "d2a cpu preset",
+    expected = {"d2a", "mp1", "dp3", "flowpolicy", "edm", "cp", "dp", "d2a cpu preset", "dp cpu preset",
                 "imagination 8x8x4, untrained, whole band"}
     assert expected <= set(results)
     trained = [name for name in results if "trained (wm.pt)" in name]

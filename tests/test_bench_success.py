@@ -102,6 +102,25 @@ def test_dart_cells_train_on_their_own_demonstrations(tmp_path):
     assert bench.cell_path(config, "reach", "mp1", 0).name.startswith("reach_mp1_s0_e1_d1_dart0.05_")
 
 
+def test_a_bench_with_an_image_policy_collects_images_and_evaluates_the_others_without(tmp_path):
+    from d2a_agents.policy.checkpoints import eval_env_kwargs
+
+    env_kwargs = {"image_size": 48, "num_points": 128}
+    policy = PolicyConfig(num_points=64, encoder=EncoderConfig(point_widths=(16, 32), image_widths=(4, 4, 8, 8)),
+                          network=VelocityNetConfig(hidden=32, layers=2))
+    config = SuccessBenchConfig(tasks=("reach",), algos=("dp", "mp1"), demos=1, workdir=str(tmp_path),
+                                policy=PolicyPreset(policy, steps=2, batch_size=4, learning_rate=1e-3),
+                                evaluations=1, eval_episodes=1, seeds=(0,), final_episodes=0, env_kwargs=env_kwargs,
+                                rgb_image_size=40)
+    assert [cell.algo for cell in bench.run(config)] == ["dp", "mp1"]
+    data = DemoDataset.open(tmp_path / "data" / "reach_rgb40")
+    assert data.episode(0)["image"].shape[1:] == (40, 40, 3)
+    runs = {algo: load_checkpoint(tmp_path / "runs" / bench._cell_name(config, "reach", algo, 0) / "policy.pt",
+                                  "policy") for algo in ("dp", "mp1")}
+    assert eval_env_kwargs(runs["dp"], "reach")["rgb_image_size"] == 40
+    assert "rgb_image_size" not in eval_env_kwargs(runs["mp1"], "reach")  # the cloud policy is spared the drawing
+
+
 @pytest.mark.parametrize(("steps", "evaluations"), [(4000, 5), (4000, 15), (3000, 15), (10, 4), (7, 7), (7, 1)])
 def test_evaluation_interval_gives_the_asked_count(steps, evaluations):
     interval = bench.evaluation_interval(steps, evaluations)

@@ -162,3 +162,41 @@ def test_bad_settings_are_refused_before_an_existing_data_set_is_touched(reach_d
         collect(bad)
     assert (copy / METADATA_FILE).read_text() == before
     assert len(DemoDataset.open(copy).metadata.episodes) == len(reach_dataset.metadata.episodes)
+
+
+def test_images_are_stored_per_step_and_replay_to_the_same_view(tmp_path):
+    """A collection with ``rgb_image_size`` stores every step's image: replaying the episode's
+    seed and actions through Gymnasium shows the same images; a data set holds images in every
+    episode or in none."""
+    from collectors.storage import EpisodeRecord
+
+    env_kwargs = {**ENV_KWARGS, "rgb_image_size": 40}
+    collect(config(tmp_path / "images", episodes=1, env_kwargs=env_kwargs, max_episode_steps=12, keep_failures=True))
+    dataset = DemoDataset.open(tmp_path / "images")
+    assert "image" in dataset.frame_keys
+    episode = dataset.episode(0)
+    assert episode["image"].shape == (12, 40, 40, 3) and episode["image"].dtype == torch.uint8
+    env = gym.make("D2A-MetaWorld-Reach-v0", **env_kwargs)
+    observation, _ = env.reset(seed=dataset.metadata.collections[0].seed)
+    for step in range(12):
+        np.testing.assert_array_equal(episode["image"][step].numpy(), observation["image"])
+        observation = env.step(episode["action"][step].numpy())[0]
+    without = episode.exclude("image")
+    record = EpisodeRecord(index=1, task="reach", start=0, length=0, success=False, episode_return=0.0,
+                           collection=0, attempt=1, min_points_in_crop=128)
+    with pytest.raises(DatasetError, match="images are stored in every episode"):
+        dataset.add_episode(without, record)
+    plain = DemoDataset.create(tmp_path / "plain", capacity=12)
+    plain.add_episode(without, record)
+    assert plain.frame_keys == DemoDataset.open(tmp_path / "plain").frame_keys  # no image key
+    assert "image" not in plain.frame_keys
+
+
+def test_a_truncated_image_file_is_refused(tmp_path):
+    collect(config(tmp_path / "images", episodes=1, env_kwargs={**ENV_KWARGS, "rgb_image_size": 40},
+                   max_episode_steps=4, keep_failures=True))
+    images = tmp_path / "images" / "buffer" / "storage" / "image.memmap"
+    with open(images, "r+b") as handle:
+        handle.truncate(images.stat().st_size // 2)
+    with pytest.raises(DatasetError, match="image.memmap holds"):
+        DemoDataset.open(tmp_path / "images")

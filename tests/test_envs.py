@@ -115,6 +115,46 @@ def test_rgb_points():
     assert np.all((cloud[:, 3:] >= 0) & (cloud[:, 3:] <= 1)) and cloud[:, 3:].std() > 0
 
 
+def _robot_red(image: np.ndarray) -> np.ndarray:
+    """Pixels of the Sawyer's red links, lit or in shade: red well above green and blue."""
+    red, green, blue = (image[..., channel].astype(int) for channel in range(3))
+    return (red > 40) & (red > 1.6 * green) & (red > 1.6 * blue)
+
+
+@requires_render
+def test_the_image_observation_is_the_cameras_view():
+    """The render backend's image is what MuJoCo's own renderer draws from that camera; the
+    raycast image (an independent projection: one ray per pixel) shows the robot where it does."""
+    import mujoco
+
+    render_env = make("hammer", rgb_image_size=64, backend="render", **SMALL)
+    image = render_env.reset(seed=0)[0]["image"]
+    assert image.shape == (64, 64, 3) and image.dtype == np.uint8
+    assert render_env.observation_space.contains(render_env.reset(seed=0)[0])
+    base = render_env.unwrapped
+    renderer = mujoco.Renderer(base.model, 64, 64)
+    renderer.update_scene(base.data, camera="corner4")
+    for effect in ("mjRND_SHADOW", "mjRND_REFLECTION", "mjRND_SKYBOX"):  # left out of the image, for speed
+        renderer.scene.flags[getattr(mujoco.mjtRndFlag, effect)] = False
+    assert np.abs(renderer.render().astype(int) - image.astype(int)).max() <= 1
+    renderer.close()
+    raycast_image = make("hammer", rgb_image_size=64, **SMALL).reset(seed=0)[0]["image"]
+    drawn, cast = _robot_red(image), _robot_red(raycast_image)
+    assert drawn.sum() > 100
+    assert (drawn & cast).sum() / (drawn | cast).sum() > 0.8
+    render_env.close()
+
+
+def test_images_only_when_asked_and_of_a_usable_size():
+    assert "image" not in make("hammer", **SMALL).reset(seed=0)[0]
+    env = make("adroit-door", rgb_image_size=40, **SMALL)
+    observation, _ = env.reset(seed=0)
+    assert observation["image"].shape == (40, 40, 3) and observation["image"].std() > 0
+    assert env.observation_space.contains(env.step(env.action_space.sample())[0])
+    with pytest.raises(ValueError, match="at least 8 pixels"):
+        make("hammer", rgb_image_size=4, **SMALL)
+
+
 @pytest.mark.parametrize("task", ["hammer", "adroit-door"])
 def test_dict_space_contains_every_observation(task):
     env = make(task, **SMALL)

@@ -430,3 +430,33 @@ def test_d2a_present_without_a_count_of_its_own_reads_the_present_cloud_itself(r
     own = dataclasses.replace(config, imagined_points=config.num_points)
     frames = training_frames(DemoDataset.open(reach_data), own, None, progress=False)
     assert torch.equal(frames[IMAGINED_KEY], frames["point_cloud"])  # the same count: the same points
+
+
+def test_the_2d_diffusion_policy_trains_on_stored_images_and_acts_on_the_envs(tmp_path):
+    from collectors.collect import CollectConfig, collect
+    from d2a_agents.policy.train import augment_shift_for
+    from tests.conftest import SMALL_ENV_KWARGS
+
+    data = tmp_path / "data"
+    collect(CollectConfig(tasks=("reach",), out=str(data), episodes=1, env_kwargs={**SMALL_ENV_KWARGS,
+                          "rgb_image_size": 40}, progress=False))
+    tiny = dict(encoder=EncoderConfig(image_widths=(4, 4, 8, 8)), network=VelocityNetConfig(hidden=32, layers=2))
+    config = TrainPolicyConfig(data=str(data), out=str(tmp_path / "run"), policy=PolicyConfig(algo="dp", **tiny),
+                               steps=2, batch_size=4, eval_episodes=1, progress=False)
+    assert augment_shift_for(config, ["reach"]) == 0.0  # moving agent_pos without the pixels is not action-safe
+    with pytest.raises(ValueError, match="no cloud"):
+        augment_shift_for(dataclasses.replace(config, augment_shift=0.02), ["reach"])
+    _, history = train_policy(config)
+    assert history[-1].episodes == 1
+    payload = load_checkpoint(tmp_path / "run" / CHECKPOINT_NAME, "policy")
+    assert eval_env_kwargs(payload, "reach")["rgb_image_size"] == 40  # it acts on the images it trained on
+    assert payload["reliance"][-1]["perceives"] == "images"
+    plain = tmp_path / "plain-data"  # the same demonstration without images
+    collect(CollectConfig(tasks=("reach",), out=str(plain), episodes=1, env_kwargs=SMALL_ENV_KWARGS, progress=False))
+    with pytest.raises(ValueError, match="--rgb-image-size"):
+        train_policy(dataclasses.replace(config, data=str(plain), out=str(tmp_path / "plain")))
+    cpu = POLICY_PRESETS["cpu"]
+    runs = {algo: TrainPolicyConfig.from_preset(cpu, data="d", out="o",
+                                                policy=dataclasses.replace(cpu.policy, algo=algo))
+            for algo in ("dp", "mp1")}
+    assert (runs["dp"].batch_size, runs["mp1"].batch_size) == (cpu.image_batch_size, cpu.batch_size) == (64, 256)

@@ -13,6 +13,9 @@ Variants (``--algo``), all on the same encoders, network, data and evaluation:
 | ``mp1`` | MeanFlow, 1 step | cloud + ``agent_pos`` | no | no |
 | ``dp3`` | diffusion, DDIM 10 steps | cloud + ``agent_pos`` | no | no |
 | ``flowpolicy`` | consistency flow matching, 1 step (FlowPolicy) | cloud + ``agent_pos`` | no | no |
+| ``edm`` | EDM diffusion, Heun (Consistency Policy's teacher) | cloud + ``agent_pos`` | no | no |
+| ``cp`` | consistency student of an ``edm`` run, 1 step (Consistency Policy) | cloud + ``agent_pos`` | no | no |
+| ``dp`` | diffusion, DDIM 10 steps (2D Diffusion Policy) | camera image + ``agent_pos`` | no | no |
 | ``mp1-state`` | MeanFlow, 1 step | the simulator's ``state`` | no | no |
 
 ``mp1-state`` is the perception reference: the same action expert fed privileged state
@@ -44,8 +47,10 @@ from collectors.envs import STATE_KEY
 from d2a_agents.policy.networks import EncoderConfig, ObservationEncoder, VelocityNet, VelocityNetConfig
 from d2a_agents.world_model.imagine import IMAGINED_KEY
 from d2a_envs.sampling import farthest_point_indices
+from d2a_envs.wrappers import IMAGE_KEY
 
 CLOUD_KEYS = ("point_cloud", IMAGINED_KEY)  # normalized with the current cloud's normalizer
+IMAGE_SETTINGS = ("use_image", "image_widths")  # EncoderConfig's; recorded only for image policies
 
 
 @dataclass(frozen=True)
@@ -57,7 +62,9 @@ class Variant:
     # imagined cloud) or "present" (the current cloud again, the control of imagination).
     imagination: str = "none"
     cfg: bool = False
-    observation: str = "cloud"  # "cloud" (cloud + agent_pos) or "state" (privileged simulator state)
+    # "cloud" (cloud + agent_pos), "image" (the camera's colour image + agent_pos) or "state"
+    # (the privileged simulator state)
+    observation: str = "cloud"
     imagined: str = "future"  # what the imagined cloud holds (world_model.imagine.IMAGINED_OUTPUTS)
 
 
@@ -73,6 +80,7 @@ VARIANTS: dict[str, Variant] = {
     "flowpolicy": Variant("consistency-flow"),
     "edm": Variant("edm"),
     "cp": Variant("consistency-trajectory"),
+    "dp": Variant("diffusion", observation="image"),
     "mp1-state": Variant("meanflow", observation="state"),
 }
 ALGORITHMS = tuple(VARIANTS)
@@ -81,6 +89,11 @@ ALGORITHMS = tuple(VARIANTS)
 def uses_imagination(algo: str) -> bool:
     """Whether ``algo`` reads a world model's imagined cloud (and so needs a world model)."""
     return VARIANTS[algo].imagination == "world-model"
+
+
+def reads_images(algo: str) -> bool:
+    """Whether ``algo`` reads the camera's colour image (and so needs data collected with images)."""
+    return VARIANTS[algo].observation == "image"
 
 
 @dataclass(frozen=True)
@@ -135,7 +148,8 @@ class PolicyConfig:
         state = variant.observation == "state"
         encoder = dataclasses.replace(
             self.encoder, n_obs_steps=self.n_obs_steps, use_imagination=variant.imagination != "none",
-            use_cloud=not state, state_key="state" if state else "agent_pos",
+            use_cloud=variant.observation == "cloud", use_image=variant.observation == "image",
+            state_key="state" if state else "agent_pos",
         )
         object.__setattr__(self, "encoder", encoder)
         # The time scale belongs to the algorithm: DDPM's 1000 for diffusion (EDM's ln(sigma) / 4
@@ -164,7 +178,8 @@ class PolicyConfig:
     def env_observation_keys(self) -> tuple[str, ...]:
         """The observations the policy reads from its env (an imagining env adds the imagined cloud)."""
         encoder = self.encoder
-        return (("point_cloud",) if encoder.use_cloud else ()) + (encoder.state_key,) + (
+        return (("point_cloud",) if encoder.use_cloud else ()) + ((IMAGE_KEY,) if encoder.use_image else ()) + (
+            encoder.state_key,) + (
             (IMAGINED_KEY,) if self.variant.imagination == "world-model" else ())
 
     @property
@@ -173,7 +188,13 @@ class PolicyConfig:
         return min(self.n_action_steps, self.horizon - (self.n_obs_steps - 1))
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """Every setting, less the image encoder's where the policy reads no image (there they
+        do nothing, and a checkpoint written before they existed still resumes)."""
+        raw = dataclasses.asdict(self)
+        if not self.encoder.use_image:
+            for name in IMAGE_SETTINGS:
+                del raw["encoder"][name]
+        return raw
 
     @classmethod
     def from_dict(cls, raw: dict) -> PolicyConfig:
@@ -182,11 +203,12 @@ class PolicyConfig:
 
 
 # What fits a 2-core CPU: 64 points into the encoders (as ManiFlow on Meta-World), a
-# third of DP3's encoder widths, a narrower velocity network, the plain squared error
-# (p = 0). See POLICY_PRESETS in train.py for the budget and docs/perception.md for the
+# third of DP3's encoder widths (a quarter of ResNet-18's for images), a narrower velocity
+# network, the plain squared error (p = 0). See POLICY_PRESETS in train.py for the budget and docs/perception.md for the
 # ablations behind it.
 CPU_POLICY_PRESET = PolicyConfig(
-    num_points=64, adaptive_power=0.0, encoder=EncoderConfig(point_widths=(32, 64, 128), point_dtype="bfloat16"),
+    num_points=64, adaptive_power=0.0,
+    encoder=EncoderConfig(point_widths=(32, 64, 128), point_dtype="bfloat16", image_widths=(16, 32, 64, 128)),
     network=VelocityNetConfig(hidden=128, layers=3),
 )
 
@@ -275,6 +297,9 @@ class Policy(nn.Module):
             keys = (*keys, IMAGINED_KEY)
         normalized = {}
         for key in keys:
+            if key == IMAGE_KEY:  # raw pixels: the image encoder maps [0, 255] onto [-1, 1] itself
+                normalized[key] = observation[key]
+                continue
             normalizer = self.normalizers["point_cloud" if key in CLOUD_KEYS else key]
             normalized[key] = normalizer.normalize(observation[key][..., :3] if key in CLOUD_KEYS else observation[key])
         return normalized

@@ -15,7 +15,7 @@ from typing import Any
 from collectors.dataset import Normalizer
 from collectors.evaluation import EvaluationResult, evaluate
 from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint
-from d2a_agents.policy.agent import VARIANTS, Policy, PolicyConfig, TorchRLPolicy, normalizer_keys
+from d2a_agents.policy.agent import VARIANTS, Policy, PolicyConfig, TorchRLPolicy, normalizer_keys, reads_images
 from d2a_envs.tasks import get_task
 
 CHECKPOINT_KIND = "policy"
@@ -62,8 +62,10 @@ def load_torchrl_policy(path: str | Path, n_action_steps: int | None = None) -> 
 
 
 def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
-    """The env settings the policy was trained with, plus its world model when it imagines."""
-    kwargs = {k: v for k, v in payload["env_kwargs"][task].items() if k != "max_episode_steps"}
+    """The env settings the policy was trained with (less the colour image where the policy reads
+    none: drawing it would only cost time), plus its world model when it imagines."""
+    unread = ("max_episode_steps",) + (() if reads_images(payload["policy_config"]["algo"]) else ("rgb_image_size",))
+    kwargs = {k: v for k, v in payload["env_kwargs"][task].items() if k not in unread}
     world_model = payload["world_model"]
     if world_model is not None:
         if not Path(world_model).is_file():

@@ -4,7 +4,8 @@ Encoders (DP3 style, paper section III-C): a per-point MLP 3 -> 64 -> 128 -> 256
 LayerNorm + ReLU, max-pooled over points and projected to 64 (then LayerNorm, as DP3's
 encoder ends), one for the current and one for the imagined cloud; an MLP for the
 low-dimensional observation (the robot's ``agent_pos``, or the simulator's full ``state`` for
-the privileged reference, which then has no cloud at all); the last ``n_obs_steps``
+the privileged reference, which then has no cloud at all); for the 2D Diffusion Policy, a
+camera image in place of the cloud (:mod:`d2a_agents.policy.image_encoder`); the last ``n_obs_steps``
 observations of each, and the imagined cloud of the latest (the paper's one P_{t+H}), are
 concatenated into the condition f_c. Clouds arrive normalized
 (per axis to [-1, 1], by the policy's normalizer).
@@ -25,6 +26,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from d2a_agents.policy.image_encoder import RESNET18_WIDTHS, ImageEncoder, ImageEncoderConfig
+from d2a_envs.wrappers import IMAGE_KEY
+
 POINT_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
 
@@ -38,6 +42,8 @@ class EncoderConfig:
     n_obs_steps: int = 2
     use_imagination: bool = True
     use_cloud: bool = True  # False: the low-dimensional observation alone (the privileged-state reference)
+    use_image: bool = False  # the camera's colour image (the 2D Diffusion Policy), through a ResNet-18
+    image_widths: tuple[int, ...] = RESNET18_WIDTHS  # the ResNet-18's four stage widths
     state_key: str = "agent_pos"  # the low-dimensional observation: "agent_pos" or the full "state"
     project_norm: bool = True  # LayerNorm after the cloud projection (DP3); without it the features can collapse
     # Precision of the per-point MLP, the bulk of a training step: "bfloat16" runs it under
@@ -95,9 +101,10 @@ class PointCloudEncoder(nn.Module):
 class ObservationEncoder(nn.Module):
     """f_c from the last ``n_obs_steps`` observations: clouds (and imagined clouds) and state.
 
-    Input: a mapping with ``point_cloud`` (B, n_obs, N, 3) when ``use_cloud``, the
-    ``state_key`` observation (B, n_obs, D) and, when ``use_imagination``,
-    ``imagined_point_cloud`` (B, n_obs, N, 3), of which the last ``imagined_steps`` are read.
+    Input: a mapping with ``point_cloud`` (B, n_obs, N, 3) when ``use_cloud``, ``image``
+    (B, n_obs, H, W, 3) when ``use_image``, the ``state_key`` observation (B, n_obs, D) and, when
+    ``use_imagination``, ``imagined_point_cloud`` (B, n_obs, N, 3), of which the last
+    ``imagined_steps`` are read.
     """
 
     def __init__(self, config: EncoderConfig, state_dim: int) -> None:
@@ -112,16 +119,21 @@ class ObservationEncoder(nn.Module):
 
         self.cloud = cloud_encoder() if config.use_cloud else None
         self.imagined = cloud_encoder() if config.use_imagination else None
+        self.image = ImageEncoder(ImageEncoderConfig(config.image_widths), config.embed_dim) if config.use_image \
+            else None
         self.state = nn.Sequential(
             nn.Linear(state_dim, config.state_hidden), nn.ReLU(), nn.Linear(config.state_hidden, config.embed_dim)
         )
         imagined = config.imagined_steps if config.use_imagination else 0
-        self.out_dim = (config.n_obs_steps * (1 + int(config.use_cloud)) + imagined) * config.embed_dim
+        per_step = 1 + int(config.use_cloud) + int(config.use_image)
+        self.out_dim = (config.n_obs_steps * per_step + imagined) * config.embed_dim
 
     def forward(self, observation: dict[str, torch.Tensor]) -> torch.Tensor:
         parts = [self.state(observation[self.config.state_key])]
         if self.cloud is not None:
             parts.append(self.cloud(observation["point_cloud"]))
+        if self.image is not None:
+            parts.append(self.image(observation[IMAGE_KEY]))
         if self.imagined is not None:
             parts.append(self.imagined(observation["imagined_point_cloud"][:, -self.config.imagined_steps:]))
         return torch.cat([part.flatten(1) for part in parts], dim=1)

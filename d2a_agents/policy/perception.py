@@ -3,7 +3,7 @@
 A policy that ignores its point cloud predicts the same actions when the clouds of a batch
 are permuted among its windows; one that reads them gets worse. :func:`reliance` measures
 the one-step error (normalized action MSE, the same noise in every pass) on a fixed set of
-windows: intact, with the clouds (current and imagined together) shuffled, with the
+windows: intact, with the clouds (current and imagined together; a 2D policy's images) shuffled, with the
 imagined cloud alone shuffled (policies with a second cloud encoder), and with the
 low-dimensional observation (``agent_pos`` or ``state``) shuffled. The ratio
 shuffled / intact per input is the policy's reliance on it: about 1 means the input is
@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from d2a_agents.policy.agent import CLOUD_KEYS, IMAGINED_KEY, Policy
+from d2a_envs.wrappers import IMAGE_KEY
 
 
 @dataclass(frozen=True)
@@ -25,9 +26,10 @@ class Reliance:
 
     windows: int
     intact: float
-    clouds_shuffled: float | None  # None: the policy reads no cloud
+    clouds_shuffled: float | None  # None: the policy reads no cloud (nor image)
     state_shuffled: float
     imagined_shuffled: float | None = None  # None: no second cloud encoder
+    perceives: str = "clouds"  # what clouds_shuffled shuffled: "clouds", or a 2D policy's "images"
 
     @classmethod
     def from_record(cls, record: dict[str, float | int | str | None]) -> Reliance:
@@ -47,7 +49,7 @@ class Reliance:
         return None if self.imagined_shuffled is None else self.imagined_shuffled / max(self.intact, 1e-12)
 
     def summary(self, where: str) -> str:
-        cloud = "no cloud" if self.cloud_ratio is None else f"clouds shuffled {self.clouds_shuffled:.4f} " \
+        cloud = "no cloud" if self.cloud_ratio is None else f"{self.perceives} shuffled {self.clouds_shuffled:.4f} " \
                                                              f"(x{self.cloud_ratio:.1f})"
         if self.imagined_ratio is not None:
             cloud += f", imagined alone {self.imagined_shuffled:.4f} (x{self.imagined_ratio:.1f})"
@@ -84,9 +86,10 @@ def reliance(
         return {key: value[shift] if key in keys else value for key, value in observation.items()}
 
     intact = _error(policy, observation, target, seed)
-    cloud_keys = tuple(key for key in observation if key in CLOUD_KEYS)
+    cloud_keys = tuple(key for key in observation if key in (*CLOUD_KEYS, IMAGE_KEY))
     clouds = _error(policy, shuffled(cloud_keys), target, seed) if cloud_keys else None
     state = _error(policy, shuffled((policy.config.encoder.state_key,)), target, seed)
     imagined = _error(policy, shuffled((IMAGINED_KEY,)), target, seed) if second else None
     policy.train(was_training)
-    return Reliance(batch, intact, clouds, state, imagined)
+    perceives = "images" if IMAGE_KEY in cloud_keys else "clouds"
+    return Reliance(batch, intact, clouds, state, imagined, perceives)

@@ -49,6 +49,7 @@ from d2a_agents.policy.perception import Reliance, reliance
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import Imaginer
 from d2a_envs.tasks import get_task
+from d2a_envs.wrappers import IMAGE_KEY
 
 # TrainPolicyConfig fields a resumed run may change (how long, how often, where it runs);
 # every other field must match the checkpoint's, or the resume would mix two runs.
@@ -73,10 +74,17 @@ class PolicyPreset:
     learning_rate: float
     trim_after_success: int = -1  # frames kept after each demonstration's first success (-1: all)
     augment_shift: float | None = 0.0  # translation of the training windows (m); None: see augment_shift_for
+    image_batch_size: int | None = None  # the batch of a policy that reads images (None: batch_size)
 
-    def training_fields(self) -> dict[str, Any]:
-        """Every field, by name: each is a ``TrainPolicyConfig`` field of the same name."""
-        return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
+    def training_fields(self, policy: PolicyConfig | None = None) -> dict[str, Any]:
+        """The ``TrainPolicyConfig`` fields the preset sets, for ``policy`` (default: the preset's
+        own): the batch is ``image_batch_size`` where that policy reads images."""
+        policy = policy or self.policy
+        fields = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
+                  if field.name != "image_batch_size"}
+        if policy.encoder.use_image and self.image_batch_size is not None:
+            fields["batch_size"] = self.image_batch_size
+        return {**fields, "policy": policy}
 
 
 # The translation the ``cpu`` preset applies where it is action-safe (docs/perception.md).
@@ -90,8 +98,11 @@ POLICY_PRESETS: dict[str, PolicyPreset] = {
     # Training stops 10 frames after each demonstration's first success: the expert holds still
     # after it (1/3 to 2/3 of the frames), and those frames taught the policy to stop short.
     # On Meta-World each training window is moved in the table plane by up to 2 cm along x and y.
+    # An image policy (dp) trains on batches of 64, Diffusion Policy's own batch for its image
+    # tasks: its ResNet-18 (a quarter of the widths) on 84-pixel images costs about 5x the
+    # point encoder per window (`d2a bench train`).
     "cpu": PolicyPreset(CPU_POLICY_PRESET, steps=4000, batch_size=256, learning_rate=1e-3, trim_after_success=10,
-                        augment_shift=None),
+                        augment_shift=None, image_batch_size=64),
     # Section IV of the paper: 1024 points (Meta-World), batch 128, 3000 epochs of 2000
     # demonstration steps (~47k steps), DP3's learning rate.
     "paper": PolicyPreset(PolicyConfig(num_points=1024), steps=47_000, batch_size=128, learning_rate=1e-4),
@@ -144,8 +155,8 @@ class TrainPolicyConfig:
     @classmethod
     def from_preset(cls, preset: PolicyPreset, **fields: Any) -> TrainPolicyConfig:
         """The preset's networks and budget (steps, batch, learning rate, trimming, window shift);
-        ``fields`` set the rest."""
-        return cls(**{**preset.training_fields(), **fields})
+        ``fields`` set the rest (a ``policy`` there gets the preset's batch for its kind)."""
+        return cls(**{**preset.training_fields(fields.get("policy")), **fields})
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "checkpoint_every", "reliance_windows"):
@@ -200,7 +211,7 @@ def training_frames(
     dataset: DemoDataset, config: PolicyConfig, imaginer: Imaginer | None, progress: bool
 ) -> TensorDict:
     """In-memory frames for the windows: the observations the policy reads (clouds
-    subsampled to ``config.num_points`` by FPS) and, for imagination variants, the world
+    subsampled to ``config.num_points`` by FPS, images as stored) and, for imagination variants, the world
     model's imagined cloud of every step (or ``d2a-present``'s own copy of the present), at
     ``config.imagined_point_count``."""
     frames = dataset.frames()
@@ -210,6 +221,11 @@ def training_frames(
     if config.encoder.use_cloud:
         data["point_cloud"] = torch.stack(
             [subsample_cloud(c, config.num_points) for c in torch.as_tensor(frames["point_cloud"])])
+    if config.encoder.use_image:
+        if IMAGE_KEY not in frames.keys():
+            raise ValueError(f"{config.algo} reads camera images and {dataset.directory} holds none: collect its "
+                             "demonstrations with --rgb-image-size")
+        data[IMAGE_KEY] = torch.as_tensor(frames[IMAGE_KEY])  # uint8: the encoder scales each batch
     if imaginer is not None:
         wm = imaginer.config
         table = WorldModelTransitions(frames, imaginer.grid, wm.horizon, wm.action_history)
@@ -288,16 +304,19 @@ def augment_shift_for(config: TrainPolicyConfig, tasks: list[str]) -> float:
 
     Moving a window's clouds and end effector together calls for the same actions only where
     actions are end-effector position deltas (Meta-World) and the policy reads clouds and
-    ``agent_pos`` (the state reference reads object positions that would have to move too).
+    ``agent_pos`` (the state reference's object positions, or the image policy's pixels, would
+    have to move too).
     ``augment_shift=None`` gives ``DEFAULT_AUGMENT_SHIFT`` there and 0 elsewhere; an explicit
     distance where it is not action-safe is refused.
     """
     others = [task for task in tasks if get_task(task).suite != "metaworld"]
-    reads_state = config.policy.encoder.state_key != "agent_pos"
+    encoder = config.policy.encoder
+    reads_other = encoder.state_key != "agent_pos" or not encoder.use_cloud
     if config.augment_shift is None:
-        return 0.0 if others or reads_state else DEFAULT_AUGMENT_SHIFT
-    if config.augment_shift > 0 and reads_state:
-        raise ValueError(f"augment_shift moves clouds and agent_pos; {config.policy.algo} reads the simulator state")
+        return 0.0 if others or reads_other else DEFAULT_AUGMENT_SHIFT
+    if config.augment_shift > 0 and reads_other:
+        seen = "the simulator state" if encoder.state_key != "agent_pos" else "no cloud"
+        raise ValueError(f"augment_shift moves clouds and agent_pos; {config.policy.algo} reads {seen}")
     if config.augment_shift > 0 and others:
         raise ValueError(f"augment_shift needs position-delta actions (Meta-World); {others} act in joint space")
     return config.augment_shift
