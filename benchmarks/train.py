@@ -2,8 +2,9 @@
 
 Each row times the full step (sample windows, normalize, encode, loss, backward, AdamW) of a
 policy preset on in-memory windows shaped like Meta-World Hammer's (4-d ``agent_pos`` and
-actions, clouds of the preset's size); the cost of a step does not depend on the values, so
-random clouds serve. Rows run one after the other in one process with the same thread
+actions, clouds of the preset's size, 84-pixel images for the image policy); the cost of a step
+does not depend on the values, so random clouds and images serve. An image policy trains on the
+preset's image batch. Rows run one after the other in one process with the same thread
 count, so their ratios are comparable; the last column is each row against the first.
 """
 
@@ -57,6 +58,7 @@ class TrainBenchConfig:
         ("cpu, both imagined frames", EVERY_IMAGINED_CPU_PRESET, "d2a"),
         ("cpu", POLICY_PRESETS["cpu"], "d2a"),
         ("cpu", POLICY_PRESETS["cpu"], "dp3"),
+        ("cpu", POLICY_PRESETS["cpu"], "dp"),
         ("cpu", POLICY_PRESETS["cpu"], "mp1-state"),
     )
     steps: int = 30  # timed steps per row, after 3 warm-up steps
@@ -64,15 +66,18 @@ class TrainBenchConfig:
     device: str = "cpu"
     episodes: int = 10
     episode_length: int = 200
+    rgb_image_size: int = 84  # the image policy's images (DP3's Meta-World size)
 
 
-def synthetic_frames(num_points: int, episodes: int, length: int, seed: int = 0) -> TensorDict:
-    """Hammer-shaped frames: clouds in a 1 m box, 4-d ``agent_pos`` and actions, 39-d ``state``."""
+def synthetic_frames(num_points: int, episodes: int, length: int, seed: int = 0, image_size: int = 84) -> TensorDict:
+    """Hammer-shaped frames: clouds in a 1 m box, colour images, 4-d ``agent_pos`` and actions, 39-d ``state``."""
     generator = torch.Generator().manual_seed(seed)
     n = episodes * length
     cloud = torch.rand(n, num_points, 3, generator=generator)
+    images = torch.randint(0, 256, (n, image_size, image_size, 3), generator=generator, dtype=torch.uint8)
     return TensorDict({
-        "point_cloud": cloud, "imagined_point_cloud": cloud.clone(), "agent_pos": torch.rand(n, 4, generator=generator),
+        "point_cloud": cloud, "imagined_point_cloud": cloud.clone(), "image": images,
+        "agent_pos": torch.rand(n, 4, generator=generator),
         "state": torch.rand(n, 39, generator=generator), "action": torch.rand(n, 4, generator=generator) * 2 - 1,
         "episode": torch.arange(episodes).repeat_interleave(length),
     }, batch_size=[n])
@@ -82,7 +87,9 @@ def samples_per_second(preset: PolicyPreset, algo: str, config: TrainBenchConfig
     """Median samples/s over ``config.steps`` timed training steps (the trainer's own step)."""
     policy_config = dataclasses.replace(preset.policy, algo=algo)
     device = torch.device(config.device)
-    frames = synthetic_frames(policy_config.num_points, config.episodes, config.episode_length)
+    frames = synthetic_frames(policy_config.num_points, config.episodes, config.episode_length,
+                              image_size=config.rgb_image_size)
+    batch_size = preset.training_fields(policy_config)["batch_size"]
     policy = Policy(policy_config, 4, frames[policy_config.encoder.state_key].shape[-1],
                     fit_policy_normalizers(frames, policy_config)).to(device)
     keys = policy_config.observation_keys
@@ -93,12 +100,12 @@ def samples_per_second(preset: PolicyPreset, algo: str, config: TrainBenchConfig
     timings = []
     for step in range(3 + config.steps):
         started = time.perf_counter()
-        training_step(policy, optimizer, windows, preset.batch_size, generator)
+        training_step(policy, optimizer, windows, batch_size, generator)
         if device.type == "cuda":
             torch.cuda.synchronize()
         if step >= 3:
             timings.append(time.perf_counter() - started)
-    return preset.batch_size / statistics.median(timings)
+    return batch_size / statistics.median(timings)
 
 
 def run(config: TrainBenchConfig = TrainBenchConfig()) -> list[dict[str, object]]:
@@ -107,8 +114,9 @@ def run(config: TrainBenchConfig = TrainBenchConfig()) -> list[dict[str, object]
     rows = []
     for label, preset, algo in config.rows:
         rate = samples_per_second(preset, algo, config)
-        rows.append({"preset": label, "algo": algo, "points": preset.policy.num_points, "batch": preset.batch_size,
-                     "samples_per_s": rate})
+        policy = dataclasses.replace(preset.policy, algo=algo)
+        rows.append({"preset": label, "algo": algo, "points": preset.policy.num_points,
+                     "batch": preset.training_fields(policy)["batch_size"], "samples_per_s": rate})
         print(f"{label} {algo}: {rate:.0f} samples/s", flush=True)
     first = rows[0]["samples_per_s"]
     print(f"\nTraining step, {config.threads} thread(s), {config.device}, median of {config.steps} steps:\n")
