@@ -220,7 +220,7 @@ def cmd_act(args: argparse.Namespace) -> None:
     env_kwargs = {k: v for k, v in payload["env_kwargs"][task].items() if k != "max_episode_steps"}
     env = gym.make(d2a_envs.get_task(task).env_id, **env_kwargs)
     cameras = SimCameras(env)
-    robot = SimRobot(env, seed=args.seed)
+    robot = SimRobot(env.unwrapped, seed=args.seed)  # the bare simulator: the cameras above draw the clouds
     try:
         rate = {} if args.hz is None else {"hz": args.hz}
         log = DeploymentLoop(args.policy, cameras, robot, seed=args.seed, **rate).run(args.steps)

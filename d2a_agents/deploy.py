@@ -169,7 +169,11 @@ class DeploymentLoop:
 
 
 class SimRobot:
-    """A D2A env as the arm: ``state`` is its ``agent_pos``, ``apply`` steps it (``info`` kept)."""
+    """A D2A env as the arm: ``state`` is its ``agent_pos``, ``apply`` steps it (``info`` kept).
+
+    Give it the bare simulator (``env.unwrapped``) where :class:`SimCameras` see the scene: the
+    env's own point cloud would otherwise be drawn at every step for nothing.
+    """
 
     def __init__(self, env: gym.Env, seed: int = 0) -> None:
         self.env = env
