@@ -49,8 +49,9 @@ def test_report_gives_group_means_over_complete_seeds():
     rows = {tuple(part.strip() for part in line.split("|")[1:3]): line.split("|")[3:-1]
             for line in text.splitlines() if line.startswith("| ")}
     easy, medium, hard, very_hard, *adroit = (entry.strip() for entry in rows["`mp1`", "honest"])
-    # Seeds 0 and 1: group means 30 % and 40 %; sample std 7.07; pooled 440 wins of 1100 episodes.
-    low, high = _wilson(440, 1100)
+    # Seeds 0 and 1: group means 30 % and 40 %; sample std 7.07; their cells pooled: 350 wins of
+    # 1000 episodes (seed 2's lone cell is left out of the interval as of the mean).
+    low, high = _wilson(350, 1000)
     assert very_hard == f"35.0 ± 7.1 [{100 * low:.0f}-{100 * high:.0f}] (2 seeds)"
     assert hard == "75.0 over 2/4 tasks" and easy == medium == "-"
     assert adroit == ["-", "-", "-"]
