@@ -109,6 +109,9 @@ class DeploymentLoop:
         if not hz > 0:
             raise ValueError(f"hz must be positive, not {hz}")
         self.policy, payload = load_policy(checkpoint)
+        if self.policy.config.encoder.use_image:
+            raise ValueError(f"{checkpoint} is a {self.policy.config.algo} policy, which reads a camera image: the "
+                             "deployment loop feeds fused clouds (a policy that reads clouds acts here)")
         task = payload["tasks"][0]
         env_kwargs = payload["env_kwargs"][task]
         suite = d2a_envs.SUITE_DEFAULTS[d2a_envs.get_task(task).suite]

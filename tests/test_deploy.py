@@ -119,3 +119,18 @@ def test_d2a_act_runs_a_checkpoint_on_the_simulated_robot(reach_data, tmp_path, 
     main(["act", "--policy", _checkpoint(reach_data, tmp_path), "--steps", "4", "--hz", "1000"])
     out = capsys.readouterr().out
     assert "4 steps at 1000 Hz" in out and "the simulated reach reported success on" in out
+
+
+def test_an_image_policy_is_refused_by_the_cloud_deployment_loop(tmp_path, sim):
+    from collectors.collect import CollectConfig, collect
+
+    env, robot, cameras = sim
+    data = tmp_path / "data"
+    collect(CollectConfig(tasks=("reach",), out=str(data), episodes=1, env_kwargs={**ENV_KWARGS, "rgb_image_size": 40},
+                          progress=False))
+    policy = PolicyConfig(algo="dp", encoder=EncoderConfig(image_widths=(4, 4, 4, 4)),
+                          network=VelocityNetConfig(hidden=16, layers=1))
+    train_policy(TrainPolicyConfig(data=str(data), out=str(tmp_path / "run"), policy=policy, steps=1, batch_size=2,
+                                   eval_episodes=0, progress=False))
+    with pytest.raises(ValueError, match="reads a camera image"):
+        DeploymentLoop(str(tmp_path / "run" / CHECKPOINT_NAME), cameras, robot)
