@@ -64,6 +64,8 @@ def _add_env_options(parser: argparse.ArgumentParser, several_tasks: bool = Fals
     else:
         parser.add_argument("--task", default="hammer", help="task name or env id (see `d2a tasks`)")
     parser.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    parser.add_argument("--action-repeat", type=POSITIVE, default=None,
+                        help="hold each action for this many simulator steps (DP3's Adroit envs: 2; default 1)")
     _add_cloud_options(parser)
 
 
@@ -115,7 +117,8 @@ def _replace_given(instance: Any, **changes: object) -> Any:
 
 def _env_kwargs(args: argparse.Namespace) -> dict[str, object]:
     kwargs = dict(backend=args.backend, image_size=args.image_size, num_points=args.num_points, crop_box=args.crop_box,
-                  rgb_image_size=args.rgb_image_size)
+                  rgb_image_size=args.rgb_image_size,
+                  action_repeat=getattr(args, "action_repeat", None))  # an env option; data import has none
     if args.cameras:
         kwargs["cameras"] = tuple(args.cameras.split(","))
     if args.hide_sites:

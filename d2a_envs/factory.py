@@ -12,7 +12,7 @@ from d2a_envs.sampling import CropBox
 from d2a_envs.suites.adroit import AdroitEnv
 from d2a_envs.suites.base import SuiteEnv
 from d2a_envs.suites.metaworld import MetaWorldEnv
-from d2a_envs.wrappers import CameraImageObservation, PointCloudObservation
+from d2a_envs.wrappers import ActionRepeat, CameraImageObservation, PointCloudObservation
 
 _SUITE_ENVS: dict[str, type[SuiteEnv]] = {"metaworld": MetaWorldEnv, "adroit": AdroitEnv}
 # Wrappers that packages above this one provide by name (``world_model``: the imagination
@@ -41,6 +41,7 @@ def make_env(
     with_rgb: bool | None = None,
     show_sites: bool | None = None,
     rgb_image_size: int | None = None,
+    action_repeat: int = 1,
     state_obs: bool = True,
     physics_obs: bool = False,
     world_model: str | None = None,
@@ -59,6 +60,8 @@ def make_env(
     ``physics_obs`` (Adroit) adds the ``physics`` vector that the planning experts read.
     ``rgb_image_size`` adds ``image``, the first camera's colour view at that many pixels a side
     (:class:`~d2a_envs.wrappers.CameraImageObservation`, the input of ``--algo dp``).
+    ``action_repeat`` holds each action for that many simulator steps
+    (:class:`~d2a_envs.wrappers.ActionRepeat`; DP3's Adroit envs hold 2), observing once per action.
     """
     if suite not in _SUITE_ENVS:
         raise ValueError(f"unknown suite {suite!r}; choose one of {sorted(_SUITE_ENVS)}")
@@ -71,7 +74,8 @@ def make_env(
         if suite != "adroit":
             raise ValueError(f"physics_obs is available for Adroit tasks, not {suite}")
         suite_kwargs["physics_obs"] = True
-    env = PointCloudObservation(_SUITE_ENVS[suite](task, **suite_kwargs), config)
+    base = _SUITE_ENVS[suite](task, **suite_kwargs)
+    env = PointCloudObservation(base if action_repeat == 1 else ActionRepeat(base, action_repeat), config)
     if rgb_image_size is not None:
         env = CameraImageObservation(env, config.cameras[0], rgb_image_size, config.backend, config.show_sites)
     if (imagined_points is not None or imagined_output is not None) and world_model is None:

@@ -112,6 +112,32 @@ class CameraImageObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         super().close()
 
 
+class ActionRepeat(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """Hold each action for ``repeats`` simulator steps, as DP3's Adroit envs hold 2.
+
+    A step returns the last observation, the rewards summed, and ``success`` true when any of
+    the held steps succeeded; it stops early at termination or truncation. A time limit
+    outside this wrapper counts the held steps as one.
+    """
+
+    def __init__(self, env: gym.Env, repeats: int) -> None:
+        if isinstance(repeats, bool) or int(repeats) != repeats or repeats < 1:
+            raise ValueError(f"an action is held for a positive whole number of steps, not {repeats!r}")
+        gym.utils.RecordConstructorArgs.__init__(self, repeats=repeats)
+        gym.Wrapper.__init__(self, env)
+        self.repeats = int(repeats)
+
+    def step(self, action: np.ndarray):
+        total, success = 0.0, False
+        for _ in range(self.repeats):
+            observation, reward, terminated, truncated, info = self.env.step(action)
+            total += float(reward)
+            success = success or bool(info.get("success", False))
+            if terminated or truncated:
+                break
+        return observation, total, terminated, truncated, {**info, "success": success}
+
+
 class SeedEachReset(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Give every episode its own seed: after ``reset(seed=s)``, the following unseeded
     resets use s + 1, s + 2, ... and ``info["episode_seed"]`` says which seed an episode got.

@@ -340,3 +340,35 @@ def test_render_after_fork_of_a_rendering_parent_is_refused_not_hung():
     message = queue.get(timeout=60)
     child.join(timeout=60)
     assert "context='spawn'" in message
+
+
+def test_an_action_held_for_two_steps_is_two_steps_of_the_simulator():
+    held, plain = make("adroit-door", action_repeat=2, **SMALL), make("adroit-door", **SMALL)
+    held.reset(seed=0)
+    plain.reset(seed=0)
+    action = np.random.default_rng(0).uniform(-1, 1, held.action_space.shape).astype(np.float32)
+    observation, reward, *_ = held.step(action)
+    first_reward = plain.step(action)[1]
+    expected, second_reward, *_ = plain.step(action)
+    np.testing.assert_array_equal(observation["state"], expected["state"])
+    np.testing.assert_array_equal(observation["agent_pos"], expected["agent_pos"])
+    assert reward == pytest.approx(first_reward + second_reward)
+    with pytest.raises(ValueError, match="whole number"):
+        make("adroit-door", action_repeat=0, **SMALL)
+
+
+def test_a_held_action_succeeds_when_any_held_step_does():
+    from d2a_envs.wrappers import ActionRepeat
+
+    class Scripted(gym.Env):
+        observation_space, action_space = gym.spaces.Discrete(1), gym.spaces.Discrete(1)
+
+        def __init__(self) -> None:
+            self.verdicts = iter([False, True, False, False, False, False])
+
+        def step(self, action):
+            return 0, 1.0, False, False, {"success": next(self.verdicts)}
+
+    env = ActionRepeat(Scripted(), 3)
+    assert env.step(0)[1:] == (3.0, False, False, {"success": True})  # held steps 1-3: the second succeeded
+    assert env.step(0)[4] == {"success": False}

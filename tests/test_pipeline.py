@@ -460,3 +460,18 @@ def test_the_2d_diffusion_policy_trains_on_stored_images_and_acts_on_the_envs(tm
                                                 policy=dataclasses.replace(cpu.policy, algo=algo))
             for algo in ("dp", "mp1")}
     assert (runs["dp"].batch_size, runs["mp1"].batch_size) == (cpu.image_batch_size, cpu.batch_size) == (64, 256)
+
+
+def test_a_checkpoint_is_evaluated_with_its_demonstrations_episode_length_and_held_actions(tmp_path):
+    from collectors.collect import CollectConfig, collect
+    from tests.conftest import SMALL_ENV_KWARGS
+
+    data = tmp_path / "data"
+    collect(CollectConfig(tasks=("reach",), out=str(data), episodes=1, max_episode_steps=70,
+                          env_kwargs={**SMALL_ENV_KWARGS, "action_repeat": 2}, progress=False))
+    config = policy_config("mp1", str(data), tmp_path / "run", steps=1)
+    train_policy(dataclasses.replace(config, eval_episodes=0))
+    payload = load_checkpoint(tmp_path / "run" / CHECKPOINT_NAME, "policy")
+    assert eval_env_kwargs(payload, "reach")["action_repeat"] == 2
+    result = evaluate_checkpoint(tmp_path / "run", "reach", 1, seed=7, progress=False)
+    assert result.lengths == [70]  # the demonstrations' episodes, not the default 200

@@ -16,6 +16,7 @@ from collectors.dataset import Normalizer
 from collectors.evaluation import EvaluationResult, evaluate
 from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint
 from d2a_agents.policy.agent import VARIANTS, Policy, PolicyConfig, TorchRLPolicy, normalizer_keys, reads_images
+from d2a_envs.defaults import DEFAULT_MAX_EPISODE_STEPS
 from d2a_envs.tasks import get_task
 
 CHECKPOINT_KIND = "policy"
@@ -86,7 +87,8 @@ def evaluate_checkpoint(
     end_on_success: bool = False, ray_address: str | None = None, n_action_steps: int | None = None,
 ) -> EvaluationResult:
     """Evaluate a checkpoint's EMA policy on ``task`` in the env it was trained with (its
-    point-cloud settings, its world model when it imagines); a task it was not trained on,
+    point-cloud settings, its world model when it imagines, the episode length of its
+    demonstrations); a task it was not trained on,
     or a checkpoint it cannot read, is refused before any worker starts. ``end_on_success``,
     ``ray_address``: see :func:`~collectors.evaluation.evaluate` (on Ray, the checkpoint and
     its world model must be readable on every node); ``n_action_steps``: see :func:`load_policy`."""
@@ -95,9 +97,10 @@ def evaluate_checkpoint(
     if name not in payload["env_kwargs"]:
         raise ValueError(f"{path} was trained on {payload['tasks']}, not on {name}")
     path = policy_file(path).resolve()  # a worker on Ray may start elsewhere
+    max_steps = payload["env_kwargs"][name].get("max_episode_steps", DEFAULT_MAX_EPISODE_STEPS)
     return evaluate(functools.partial(load_torchrl_policy, path, n_action_steps), name, episodes, seed,
                     env_kwargs=eval_env_kwargs(payload, name), workers=workers, progress=progress,
-                    end_on_success=end_on_success, ray_address=ray_address)
+                    end_on_success=end_on_success, ray_address=ray_address, max_steps=max_steps)
 
 
 def imaginer_tasks(world_model: str | Path) -> list[str]:
