@@ -204,8 +204,8 @@ class PolicyConfig:
 
 # What fits a 2-core CPU: 64 points into the encoders (as ManiFlow on Meta-World), a
 # third of DP3's encoder widths (a quarter of ResNet-18's for images), a narrower velocity
-# network, the plain squared error (p = 0). See POLICY_PRESETS in train.py for the budget and docs/perception.md for the
-# ablations behind it.
+# network, the plain squared error (p = 0). See POLICY_PRESETS in train.py for the budget
+# and docs/perception.md for the ablations behind it.
 CPU_POLICY_PRESET = PolicyConfig(
     num_points=64, adaptive_power=0.0,
     encoder=EncoderConfig(point_widths=(32, 64, 128), point_dtype="bfloat16", image_widths=(16, 32, 64, 128)),
