@@ -475,3 +475,13 @@ def test_a_checkpoint_is_evaluated_with_its_demonstrations_episode_length_and_he
     assert eval_env_kwargs(payload, "reach")["action_repeat"] == 2
     result = evaluate_checkpoint(tmp_path / "run", "reach", 1, seed=7, progress=False)
     assert result.lengths == [70]  # the demonstrations' episodes, not the default 200
+
+
+def test_a_data_set_of_rollouts_only_is_refused_for_policy_training(tmp_path):
+    from collectors.collect import CollectConfig, collect
+    from tests.conftest import SMALL_ENV_KWARGS
+
+    collect(CollectConfig(tasks=("reach",), out=str(tmp_path / "data"), episodes=1, max_episode_steps=8,
+                          keep_failures=True, env_kwargs=SMALL_ENV_KWARGS, progress=False))
+    with pytest.raises(ValueError, match="no demonstration of reach"):
+        train_policy(policy_config("mp1", str(tmp_path / "data"), tmp_path / "run", steps=1))

@@ -258,6 +258,9 @@ def split_episodes(dataset: DemoDataset, holdout: int) -> tuple[list[int], list[
     train, held = [], []
     for task in sorted(dataset.metadata.tasks):
         ids = [episode.index for episode in dataset.metadata.episodes if episode.task == task]
+        if not ids:
+            raise ValueError(f"{dataset.directory} holds no demonstration of {task} to train a policy on (only "
+                             "rollouts: kept failures or noisy runs, which world models train on)")
         if holdout >= len(ids):
             raise ValueError(f"cannot hold out {holdout} of {len(ids)} {task} episodes")
         train += ids[: len(ids) - holdout]
@@ -381,6 +384,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
         config = dataclasses.replace(config, demos=None)  # every episode: recorded as a run on the whole set
     else:
         dataset = dataset.first_episodes(config.demos)
+    train_ids, held_ids = split_episodes(dataset, config.holdout_episodes)  # refuses a set without demonstrations
     if uses_imagination(config.policy.algo) and config.world_model is None:
         raise ValueError(f"algo {config.policy.algo!r} imagines the future: pass --world-model")
     # The imagined cloud at the policy's point count, as the env serves it when acting (eval_env_kwargs).
@@ -394,7 +398,6 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     if config.trim_after_success >= 0:
         frames = frames[frames_up_to_success(frames, config.trim_after_success)]
     tasks = sorted(dataset.metadata.tasks)
-    train_ids, held_ids = split_episodes(dataset, config.holdout_episodes)
     normalizers = fit_policy_normalizers(frames[torch.isin(frames["episode"], torch.tensor(train_ids))], config.policy)
     obs_keys = config.policy.observation_keys
     window_config = WindowConfig(config.policy.horizon, config.policy.n_obs_steps, config.policy.n_action_steps,
