@@ -247,6 +247,11 @@ def collect(config: CollectConfig) -> DemoDataset:
     specs = [d2a_envs.get_task(task) for task in config.tasks]  # unknown names fail before any work
     for spec in specs:
         make_expert(spec.name, config.expert_settings)  # a task without that expert, or bad noise, fails here
+        if expert_name(spec.name, config.expert_settings.kind) == "planner" and \
+                config.env_kwargs.get("action_repeat", 1) != 1:
+            raise ValueError(f"the {spec.name} planner plans one action per simulator step; with action_repeat "
+                             f"{config.env_kwargs['action_repeat']} its plans would run at the wrong pace (the "
+                             "controllers and the scripted experts act on the state and hold any pace)")
     if config.max_episode_steps < 1 or config.max_attempts_factor < 1:
         raise ValueError("max_episode_steps and max_attempts_factor must be at least 1")
     # Bad env settings (num_points 0, an unknown camera...) fail here, before the output

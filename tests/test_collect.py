@@ -162,6 +162,11 @@ def test_bad_settings_are_refused_before_an_existing_data_set_is_touched(reach_d
         collect(bad)
     assert (copy / METADATA_FILE).read_text() == before
     assert len(DemoDataset.open(copy).metadata.episodes) == len(reach_dataset.metadata.episodes)
+    held = config(tmp_path / "held", tasks=("adroit-pen",), env_kwargs={**ENV_KWARGS, "action_repeat": 2},
+                  expert="planner")
+    with pytest.raises(ValueError, match="wrong pace"):  # the planner plans one action per simulator step
+        collect(held)
+    assert not (tmp_path / "held").exists()
 
 
 def test_images_are_stored_per_step_and_replay_to_the_same_view(tmp_path):
