@@ -57,8 +57,9 @@ def run(config: FusionBenchConfig = FusionBenchConfig()) -> dict[str, float]:
         "back-projection of both frames": median_seconds(lambda: [frame_points(f) for f in inputs], config.repeats),
         "fusion: back-projection, crop, sampling": median_seconds(
             lambda: fuse_frames(inputs, box, config.num_points, rng), config.repeats),
-        "fusion reading every 4th pixel (160 x 120 per frame)": median_seconds(
-            lambda: fuse_frames(inputs, box, config.num_points, rng, pixel_stride=4), config.repeats),
+        **{f"fusion reading every {stride}th pixel ({config.width // stride} x {config.height // stride} per frame)":
+           median_seconds(lambda s=stride: fuse_frames(inputs, box, config.num_points, rng, pixel_stride=s),
+                          config.repeats) for stride in (4, 8)},
     }
     start = time.perf_counter()
     reading = fuse_frames(inputs, box, config.num_points, rng)
