@@ -50,6 +50,10 @@ class DepthBackend(Protocol):
         """
         ...
 
+    def colour(self, model: mujoco.MjModel, data: mujoco.MjData, cam_id: int) -> np.ndarray:
+        """RGB (H, W, 3) in [0, 1] of camera ``cam_id``, without the depth image where the backend can skip it."""
+        ...
+
     def close(self) -> None:
         """Release any resource (GL context) held by the backend."""
         ...
@@ -192,6 +196,9 @@ class RaycastDepth:
             rgb = rgb.reshape(self.height, self.width, 3)
         return CameraImage(depth=depth.reshape(self.height, self.width), rgb=rgb)
 
+    def colour(self, model: mujoco.MjModel, data: mujoco.MjData, cam_id: int) -> np.ndarray:
+        return self.capture(model, data, cam_id, with_rgb=True).rgb  # the colours come from the cast depth
+
     def close(self) -> None:
         if self._pool is not None and self._pool_pid == os.getpid():
             self._pool.shutdown()
@@ -293,11 +300,17 @@ class RenderDepth:
         renderer.enable_depth_rendering()
         depth = renderer.render().astype(np.float64)
         depth[depth >= 0.999 * far_clip(model)] = np.inf
-        rgb = None
-        if with_rgb:
-            renderer.disable_depth_rendering()
-            rgb = renderer.render().astype(np.float32) / 255.0
-        return CameraImage(depth=depth, rgb=rgb)
+        return CameraImage(depth=depth, rgb=self._render_colour(renderer) if with_rgb else None)
+
+    def colour(self, model: mujoco.MjModel, data: mujoco.MjData, cam_id: int) -> np.ndarray:
+        renderer = self._get_renderer(model)
+        renderer.update_scene(data, camera=cam_id, scene_option=self._option)
+        return self._render_colour(renderer)
+
+    @staticmethod
+    def _render_colour(renderer: mujoco.Renderer) -> np.ndarray:
+        renderer.disable_depth_rendering()
+        return renderer.render().astype(np.float32) / 255.0
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -96,7 +96,7 @@ class CameraImageObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def _add_image(self, observation: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         base = self.env.unwrapped
-        rgb = self._backend.capture(base.model, base.data, self._camera, with_rgb=True).rgb
+        rgb = self._backend.colour(base.model, base.data, self._camera)
         return {**observation, IMAGE_KEY: np.round(np.clip(rgb, 0.0, 1.0) * 255).astype(np.uint8)}
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
