@@ -134,3 +134,25 @@ def test_an_image_policy_is_refused_by_the_cloud_deployment_loop(tmp_path, sim):
                                    eval_episodes=0, progress=False))
     with pytest.raises(ValueError, match="reads a camera image"):
         DeploymentLoop(str(tmp_path / "run" / CHECKPOINT_NAME), cameras, robot)
+
+
+def test_a_trained_checkpoint_closes_the_drawer_through_the_loop(tmp_path):
+    """The whole path to success: one demonstration, a small policy trained on it for 600 steps
+    (enough for each of training seeds 0-2 to close the drawer of its demonstration's layout
+    within about 100 steps, through the loop; 250 steps are not), then 200 steps of the loop
+    on that layout with the simulated robot and cameras."""
+    from collectors.collect import CollectConfig, collect
+
+    data = tmp_path / "data"
+    collect(CollectConfig(tasks=("drawer-close",), out=str(data), episodes=1, env_kwargs=ENV_KWARGS, progress=False))
+    policy = PolicyConfig(algo="mp1", num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
+                          network=VelocityNetConfig(hidden=64, layers=2))
+    train_policy(TrainPolicyConfig(data=str(data), out=str(tmp_path / "run"), policy=policy, steps=600, batch_size=32,
+                                   augment_shift=0.0, eval_episodes=0, progress=False))
+    env = gym.make("D2A-MetaWorld-DrawerClose-v0", **ENV_KWARGS)
+    robot, cameras = SimRobot(env.unwrapped, seed=0), SimCameras(env)  # seed 0: the demonstration's layout
+    loop = DeploymentLoop(str(tmp_path / "run" / CHECKPOINT_NAME), cameras, robot, hz=1000)
+    log = loop.run(steps=200)
+    cameras.close()
+    env.close()
+    assert len(log.steps) == 200 and robot.successes > 0
