@@ -226,7 +226,8 @@ def cmd_act(args: argparse.Namespace) -> None:
     robot = SimRobot(env.unwrapped, seed=args.seed)  # the bare simulator: the cameras above draw the clouds
     try:
         rate = {} if args.hz is None else {"hz": args.hz}
-        log = DeploymentLoop(args.policy, cameras, robot, seed=args.seed, **rate).run(args.steps)
+        log = DeploymentLoop(args.policy, cameras, robot, seed=args.seed, pixel_stride=args.pixel_stride,
+                             **rate).run(args.steps)
     finally:
         cameras.close()
         env.close()
@@ -653,6 +654,8 @@ def build_parser() -> argparse.ArgumentParser:
     act.add_argument("--steps", type=POSITIVE, default=None, help="control steps (default: until Ctrl-C)")
     act.add_argument("--hz", type=_finite_at_least(0.001), default=None, help="control rate (default 10)")
     act.add_argument("--seed", type=NON_NEGATIVE, default=0, help="the simulated scene's layout")
+    act.add_argument("--pixel-stride", type=POSITIVE, default=1, metavar="K",
+                     help="fuse every K-th pixel of each depth frame in both directions (default 1: all)")
     act.set_defaults(func=cmd_act)
 
     report = commands.add_parser("report", help="a table of finished policy runs: success over seeds, reliance")

@@ -72,6 +72,32 @@ def test_the_loop_observes_the_training_cloud_and_applies_one_action_per_period(
     assert all(step.late for step in late.run(steps=3).steps)  # 30 ms of work in a 20 ms period
 
 
+def test_a_pixel_stride_fuses_every_kth_pixel_only(reach_data, tmp_path, sim):
+    from d2a_envs.rgbd import frame_points
+
+    env, robot, cameras = sim
+    checkpoint = _checkpoint(reach_data, tmp_path)
+    cloud = DeploymentLoop(checkpoint, cameras, robot, pixel_stride=2).observe()["point_cloud"]
+    frames = cameras.frames()
+    read = np.concatenate([frame.depth[::2, ::2].reshape(-1) for frame in frames])
+    strided = np.concatenate([frame_points(frame, pixel_stride=2) for frame in frames])
+    assert len(strided) == np.count_nonzero(np.isfinite(read) & (read > 0))  # one point per valid read pixel
+    others = np.concatenate([frame_points(frame)[~_on_even_pixels(frame)] for frame in frames])
+    nearest = np.abs(cloud[:, None, :] - strided[None]).max(-1).min(1)
+    assert cloud.shape == (128, 3) and nearest.max() < 1e-5  # every point from an even row and column
+    assert np.abs(cloud[:, None, :] - others[None]).max(-1).min() > 1e-9  # none from an odd row or column
+    with pytest.raises(ValueError, match="pixel_stride"):
+        DeploymentLoop(checkpoint, cameras, robot, pixel_stride=0)
+
+
+def _on_even_pixels(frame) -> np.ndarray:
+    """Which of ``frame_points(frame)``'s points come from an even row and column."""
+    depth = np.asarray(frame.depth, dtype=np.float64)
+    rows, columns = np.indices(depth.shape)
+    valid = np.isfinite(depth) & (depth > 0)
+    return ((rows % 2 == 0) & (columns % 2 == 0))[valid]
+
+
 def test_a_d2a_policy_imagines_from_the_actions_it_applied(reach_data, tmp_path, sim):
     from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
     from d2a_agents.world_model.triplane import WorldModelConfig
@@ -116,7 +142,7 @@ def test_ctrl_c_stops_the_robot_and_returns_the_log(reach_data, tmp_path, sim):
 def test_d2a_act_runs_a_checkpoint_on_the_simulated_robot(reach_data, tmp_path, capsys):
     from d2a.cli import main
 
-    main(["act", "--policy", _checkpoint(reach_data, tmp_path), "--steps", "4", "--hz", "1000"])
+    main(["act", "--policy", _checkpoint(reach_data, tmp_path), "--steps", "4", "--hz", "1000", "--pixel-stride", "2"])
     out = capsys.readouterr().out
     assert "4 steps at 1000 Hz" in out and "the simulated reach reported success on" in out
 
