@@ -319,15 +319,16 @@ def cmd_eval(args: argparse.Namespace) -> None:
         from collectors.evaluation import evaluate
         from collectors.experts import ExpertSettings, expert_env_kwargs, make_expert
 
-        if args.n_action_steps is not None:
-            raise ValueError("--n-action-steps applies to a policy checkpoint; the expert acts step by step")
+        if args.n_action_steps is not None or args.action_draws != 1:
+            raise ValueError("--n-action-steps and --action-draws apply to a policy checkpoint; the expert acts "
+                             "step by step")
         make = functools.partial(make_expert, args.task, ExpertSettings(kind=args.expert))
         make()  # a task without that expert fails here, before any worker starts
         result = evaluate(make, args.task, args.episodes, args.seed,
                           env_kwargs={**env_kwargs, **expert_env_kwargs(args.task)}, workers=args.workers,
                           end_on_success=args.end_on_success, ray_address=args.ray)
     else:
-        from d2a_agents.policy.checkpoints import evaluate_checkpoint
+        from d2a_agents.policy.checkpoints import Acting, evaluate_checkpoint
 
         if args.expert is not None:
             raise ValueError("--expert applies to --policy expert")
@@ -336,7 +337,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                              f"the env options ({', '.join(env_kwargs)}) apply to --policy expert only")
         result = evaluate_checkpoint(args.policy, args.task, args.episodes, args.seed, workers=args.workers,
                                      end_on_success=args.end_on_success, ray_address=args.ray,
-                                     n_action_steps=args.n_action_steps)
+                                     acting=Acting(args.n_action_steps, args.action_draws))
     print(result.summary())
 
 
@@ -644,6 +645,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--n-action-steps", type=POSITIVE, default=None,
                             help="actions executed per planned chunk before planning again (default: the "
                                  "checkpoint's; 1 plans after every action)")
+    evaluation.add_argument("--action-draws", type=POSITIVE, default=1, metavar="K",
+                            help="chunks drawn from independent noise per plan, acted on as their mean (default 1)")
     _add_ray_option(evaluation)
     evaluation.set_defaults(func=cmd_eval)
 

@@ -157,8 +157,9 @@ def test_demo_options_change_only_what_they_name(captured):
     assert config.policy.policy == d2a.demo.DemoConfig().policy.policy
 
 
-def test_eval_passes_the_actions_per_plan_to_a_checkpoint_only(monkeypatch):
+def test_eval_passes_how_to_act_to_a_checkpoint_only(monkeypatch):
     import d2a_agents.policy.checkpoints
+    from d2a_agents.policy.checkpoints import Acting
 
     seen = {}
 
@@ -171,12 +172,13 @@ def test_eval_passes_the_actions_per_plan_to_a_checkpoint_only(monkeypatch):
         return Result()
 
     monkeypatch.setattr(d2a_agents.policy.checkpoints, "evaluate_checkpoint", evaluate_checkpoint)
-    main(["eval", "--policy", "runs/p", "--task", "push", "--n-action-steps", "1"])
-    assert (seen["path"], seen["n_action_steps"]) == ("runs/p", 1)
+    main(["eval", "--policy", "runs/p", "--task", "push", "--n-action-steps", "1", "--action-draws", "8"])
+    assert (seen["path"], seen["acting"]) == ("runs/p", Acting(n_action_steps=1, action_draws=8))
     main(["eval", "--policy", "runs/p", "--task", "push"])
-    assert seen["n_action_steps"] is None  # the checkpoint's own
-    with pytest.raises(SystemExit, match="expert acts step by step"):
-        main(["eval", "--policy", "expert", "--n-action-steps", "1"])
+    assert seen["acting"] == Acting()  # the checkpoint's own chunking, one draw
+    for option in ("--n-action-steps", "--action-draws"):
+        with pytest.raises(SystemExit, match="expert acts step by step"):
+            main(["eval", "--policy", "expert", option, "2"])
     with pytest.raises(SystemExit, match="applies to --policy expert"):
         main(["eval", "--policy", "runs/p", "--task", "push", "--expert", "planner"])
     with pytest.raises(SystemExit, match="no controller for"):
@@ -194,6 +196,7 @@ def test_abbreviated_options_are_refused(captured, capsys):
 @pytest.mark.parametrize("argv, message", [
     (["eval", "--policy", "p.pt", "--seed", "-1"], "argument --seed: must be at least 0, got -1"),
     (["eval", "--policy", "p.pt", "--n-action-steps", "0"], "argument --n-action-steps: must be at least 1"),
+    (["eval", "--policy", "p.pt", "--action-draws", "0"], "argument --action-draws: must be at least 1"),
     (["bench", "envs", "--steps", "0"], "argument --steps: must be at least 1, got 0"),
     (["train-wm", "--data", "d", "--out", "o", "--batch-size", "0"], "argument --batch-size: must be at least 1"),
     (["train-policy", "--data", "d", "--out", "o", "--policy-points", "0"],

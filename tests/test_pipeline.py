@@ -16,6 +16,7 @@ from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint
 from d2a_agents.policy.agent import PolicyConfig
 from d2a_agents.policy.checkpoints import (
     CHECKPOINT_NAME,
+    Acting,
     eval_env_kwargs,
     evaluate_checkpoint,
     load_policy,
@@ -191,15 +192,17 @@ def test_training_resumes_from_its_checkpoint(reach_data, tmp_path):
     assert not torch.equal(first.net.input.weight, resumed.net.input.weight)
 
 
-def test_a_checkpoint_acts_with_another_number_of_actions_per_plan(reach_data, tmp_path):
+def test_a_checkpoint_acts_with_other_actions_per_plan_and_draws_per_chunk(reach_data, tmp_path):
     train_policy(dataclasses.replace(policy_config("mp1", reach_data, tmp_path, steps=1), eval_episodes=0))
     stored, _ = load_policy(tmp_path)
-    replanning, _ = load_policy(tmp_path, n_action_steps=1)
+    replanning, _ = load_policy(tmp_path, acting=Acting(n_action_steps=1))
     assert (stored.config.executed_actions, replanning.config.executed_actions) == (3, 1)
     assert all(torch.equal(a, b) for a, b in zip(stored.state_dict().values(), replanning.state_dict().values(),
                                                 strict=True))  # the same network and normalizers
-    assert load_torchrl_policy(tmp_path / CHECKPOINT_NAME, 1).policy.config.executed_actions == 1  # eval workers
-    result = evaluate_checkpoint(tmp_path, "reach", 1, seed=0, n_action_steps=1, progress=False)
+    worker = load_torchrl_policy(tmp_path / CHECKPOINT_NAME, Acting(n_action_steps=1, action_draws=3)).policy
+    assert (worker.config.executed_actions, worker.action_draws, stored.action_draws) == (1, 3, 1)  # eval workers
+    result = evaluate_checkpoint(tmp_path, "reach", 1, seed=0, acting=Acting(n_action_steps=1, action_draws=2),
+                                 progress=False)
     assert len(result.successes) == 1
 
 

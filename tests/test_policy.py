@@ -218,3 +218,20 @@ def test_bfloat16_point_mlp_matches_float32_and_keeps_float32_weights():
 def test_the_expert_and_the_policy_default_to_the_same_cfg_thresholds():
     expert = MeanFlowConfig()
     assert (expert.tau_l, expert.tau_h) == PolicyConfig().cfg_thresholds
+
+
+def test_acting_on_the_mean_of_k_draws_divides_the_sampler_spread_by_k():
+    """One window repeated 2000 times, each row its own noise: the chunks' variance across rows
+    is the sampler's spread; the mean of 4 independent draws has a quarter of it, the same mean."""
+    policy = tiny_policy("mp1").eval()
+    rows = 2000
+    window = {"point_cloud": torch.rand(1, 2, 16, 3).expand(rows, -1, -1, -1),
+              "agent_pos": torch.rand(1, 2, 4).expand(rows, -1, -1)}
+    with torch.no_grad():
+        one = policy.sample_normalized(window, torch.Generator().manual_seed(0))
+        policy.action_draws = 4
+        four = policy.sample_normalized(window, torch.Generator().manual_seed(1))
+    assert four.shape == one.shape == (rows, 4, 4)
+    ratio = four.var(0) / one.var(0)  # per action entry; relative error of each about 3 %
+    assert 0.2 < ratio.mean() < 0.3 and ratio.min() > 0.15 and ratio.max() < 0.35
+    assert torch.allclose(four.mean(0), one.mean(0), atol=5 * float(one.std(0).max()) / rows ** 0.5)

@@ -283,6 +283,9 @@ class Policy(nn.Module):
         self.net = VelocityNet(config.network, config.horizon, action_dim, self.encoder.out_dim)
         self.expert = make_expert(config)
         self.normalizers = nn.ModuleDict(normalizers)  # their statistics are buffers: in the state dict
+        # Chunks drawn per plan, acted on as their mean (1: one draw, as trained and as the papers
+        # act); acting only, set by load_policy. More draws average out the sampler's spread.
+        self.action_draws = 1
         self.reset()
 
     def normalize_observation(self, observation: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -320,8 +323,13 @@ class Policy(nn.Module):
     def sample_normalized(
         self, observation: dict[str, torch.Tensor], generator: torch.Generator | None = None
     ) -> torch.Tensor:
-        """Action chunks (B, horizon, A) in the normalized action space, from a raw window."""
-        return self.expert.sample(self.net, self.condition(observation), generator=generator)
+        """Action chunks (B, horizon, A) in the normalized action space, from a raw window: the
+        mean of ``action_draws`` chunks drawn from independent noise (the encoders run once)."""
+        condition = self.condition(observation)
+        if self.action_draws == 1:
+            return self.expert.sample(self.net, condition, generator=generator)
+        draws = self.expert.sample(self.net, condition.repeat_interleave(self.action_draws, 0), generator=generator)
+        return draws.unflatten(0, (condition.shape[0], self.action_draws)).mean(1)
 
     @torch.no_grad()
     def predict_action_chunk(self, observation: dict[str, torch.Tensor], generator: torch.Generator | None = None):
