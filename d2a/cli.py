@@ -7,9 +7,12 @@ import dataclasses
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from collectors.ray_jobs import JobsLost  # the standard library only: `d2a --help` stays fast
+
+if TYPE_CHECKING:
+    from d2a_agents.policy.checkpoints import Acting
 
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
 ALGOS = ("d2a", "d2a-change", "d2a-change-top", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "mp1", "dp3",
@@ -86,6 +89,22 @@ def _add_ray_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                         help="run the episodes (or cells) as Ray jobs: alone, on a Ray instance started on this "
                              "machine; 'auto': the running cluster; or a cluster address (needs the ray extra)")
+
+
+def _add_acting_options(parser: argparse.ArgumentParser) -> None:
+    """How a checkpoint acts (``Acting``): actions per planned chunk, draws per chunk."""
+    parser.add_argument("--n-action-steps", type=POSITIVE, default=None,
+                        help="actions executed per planned chunk before planning again (default: the "
+                             "checkpoint's; 1 plans after every action)")
+    parser.add_argument("--action-draws", type=POSITIVE, default=1, metavar="K",
+                        help="chunks drawn from independent noise per plan, acted on as their mean (default 1)")
+
+
+def _acting(args: argparse.Namespace) -> Acting:
+    """The ``Acting`` that :func:`_add_acting_options` read."""
+    from d2a_agents.policy.checkpoints import Acting
+
+    return Acting(args.n_action_steps, args.action_draws)
 
 
 def _add_eval_layouts_option(parser: argparse.ArgumentParser) -> None:
@@ -227,7 +246,7 @@ def cmd_act(args: argparse.Namespace) -> None:
     try:
         rate = {} if args.hz is None else {"hz": args.hz}
         log = DeploymentLoop(args.policy, cameras, robot, seed=args.seed, pixel_stride=args.pixel_stride,
-                             **rate).run(args.steps)
+                             acting=_acting(args), **rate).run(args.steps)
     finally:
         cameras.close()
         env.close()
@@ -328,7 +347,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                           env_kwargs={**env_kwargs, **expert_env_kwargs(args.task)}, workers=args.workers,
                           end_on_success=args.end_on_success, ray_address=args.ray)
     else:
-        from d2a_agents.policy.checkpoints import Acting, evaluate_checkpoint
+        from d2a_agents.policy.checkpoints import evaluate_checkpoint
 
         if args.expert is not None:
             raise ValueError("--expert applies to --policy expert")
@@ -337,7 +356,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
                              f"the env options ({', '.join(env_kwargs)}) apply to --policy expert only")
         result = evaluate_checkpoint(args.policy, args.task, args.episodes, args.seed, workers=args.workers,
                                      end_on_success=args.end_on_success, ray_address=args.ray,
-                                     acting=Acting(args.n_action_steps, args.action_draws))
+                                     acting=_acting(args))
     print(result.summary())
 
 
@@ -642,11 +661,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--workers", type=POSITIVE, default=2)
     evaluation.add_argument("--end-on-success", action="store_true",
                             help="end episodes at their first success (same success rate, faster; returns stop there)")
-    evaluation.add_argument("--n-action-steps", type=POSITIVE, default=None,
-                            help="actions executed per planned chunk before planning again (default: the "
-                                 "checkpoint's; 1 plans after every action)")
-    evaluation.add_argument("--action-draws", type=POSITIVE, default=1, metavar="K",
-                            help="chunks drawn from independent noise per plan, acted on as their mean (default 1)")
+    _add_acting_options(evaluation)
     _add_ray_option(evaluation)
     evaluation.set_defaults(func=cmd_eval)
 
@@ -659,6 +674,7 @@ def build_parser() -> argparse.ArgumentParser:
     act.add_argument("--seed", type=NON_NEGATIVE, default=0, help="the simulated scene's layout")
     act.add_argument("--pixel-stride", type=POSITIVE, default=1, metavar="K",
                      help="fuse every K-th pixel of each depth frame in both directions (default 1: all)")
+    _add_acting_options(act)
     act.set_defaults(func=cmd_act)
 
     report = commands.add_parser("report", help="a table of finished policy runs: success over seeds, reliance")

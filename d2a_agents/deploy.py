@@ -38,7 +38,7 @@ import numpy as np
 
 import d2a_envs
 from d2a_agents.policy.agent import VARIANTS
-from d2a_agents.policy.checkpoints import load_policy
+from d2a_agents.policy.checkpoints import Acting, load_policy
 from d2a_agents.world_model.imagine import IMAGINED_KEY, Imaginer
 from d2a_envs.camera import camera_id
 from d2a_envs.depth import make_depth_backend
@@ -100,20 +100,22 @@ class DeploymentLoop:
     suite's box where the data did not set one), so the fused cloud is the one it was trained
     on. ``pixel_stride`` k reads every k-th pixel of each frame in both directions: at 640x480,
     k = 4 fuses two frames in about 7 ms on one core against about 100 ms for every pixel, and
-    still leaves thousands of points in the box to sample from. ``clock`` and ``sleep`` can be
+    still leaves thousands of points in the box to sample from. ``acting``: how the policy plans
+    (see :class:`~d2a_agents.policy.checkpoints.Acting`). ``clock`` and ``sleep`` can be
     replaced (tests; a robot's own clock).
     """
 
     def __init__(
         self, checkpoint: str | Path, cameras: CameraRig, robot: Robot, hz: float = 10.0,
         crop_box: CropBox | None = None, num_points: int | None = None, seed: int = 0, pixel_stride: int = 1,
-        clock: Callable[[], float] = time.perf_counter, sleep: Callable[[float], None] = time.sleep,
+        acting: Acting | None = None, clock: Callable[[], float] = time.perf_counter,
+        sleep: Callable[[float], None] = time.sleep,
     ) -> None:
         if not hz > 0:
             raise ValueError(f"hz must be positive, not {hz}")
         if pixel_stride < 1:
             raise ValueError(f"pixel_stride must be at least 1, not {pixel_stride}")
-        self.policy, payload = load_policy(checkpoint)
+        self.policy, payload = load_policy(checkpoint, acting=acting or Acting())
         if self.policy.config.encoder.use_image:
             raise ValueError(f"{checkpoint} is a {self.policy.config.algo} policy, which reads a camera image: the "
                              "deployment loop feeds fused clouds (a policy that reads clouds acts here)")

@@ -197,6 +197,7 @@ def test_abbreviated_options_are_refused(captured, capsys):
     (["eval", "--policy", "p.pt", "--seed", "-1"], "argument --seed: must be at least 0, got -1"),
     (["eval", "--policy", "p.pt", "--n-action-steps", "0"], "argument --n-action-steps: must be at least 1"),
     (["eval", "--policy", "p.pt", "--action-draws", "0"], "argument --action-draws: must be at least 1"),
+    (["act", "--policy", "p.pt", "--action-draws", "0"], "argument --action-draws: must be at least 1"),
     (["bench", "envs", "--steps", "0"], "argument --steps: must be at least 1, got 0"),
     (["train-wm", "--data", "d", "--out", "o", "--batch-size", "0"], "argument --batch-size: must be at least 1"),
     (["train-policy", "--data", "d", "--out", "o", "--policy-points", "0"],

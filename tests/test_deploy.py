@@ -98,6 +98,16 @@ def _on_even_pixels(frame) -> np.ndarray:
     return ((rows % 2 == 0) & (columns % 2 == 0))[valid]
 
 
+def test_the_loop_acts_as_told(reach_data, tmp_path, sim):
+    from d2a_agents.policy.checkpoints import Acting
+
+    env, robot, cameras = sim
+    checkpoint = _checkpoint(reach_data, tmp_path)
+    loop = DeploymentLoop(checkpoint, cameras, robot, acting=Acting(n_action_steps=1, action_draws=3))
+    assert (loop.policy.action_draws, loop.policy.config.executed_actions) == (3, 1)
+    assert DeploymentLoop(checkpoint, cameras, robot).policy.action_draws == 1
+
+
 def test_a_d2a_policy_imagines_from_the_actions_it_applied(reach_data, tmp_path, sim):
     from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
     from d2a_agents.world_model.triplane import WorldModelConfig
@@ -142,7 +152,8 @@ def test_ctrl_c_stops_the_robot_and_returns_the_log(reach_data, tmp_path, sim):
 def test_d2a_act_runs_a_checkpoint_on_the_simulated_robot(reach_data, tmp_path, capsys):
     from d2a.cli import main
 
-    main(["act", "--policy", _checkpoint(reach_data, tmp_path), "--steps", "4", "--hz", "1000", "--pixel-stride", "2"])
+    main(["act", "--policy", _checkpoint(reach_data, tmp_path), "--steps", "4", "--hz", "1000", "--pixel-stride", "2",
+          "--action-draws", "2"])
     out = capsys.readouterr().out
     assert "4 steps at 1000 Hz" in out and "the simulated reach reported success on" in out
 
