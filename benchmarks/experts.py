@@ -32,7 +32,7 @@ from collectors.envs import STATE_KEY, make_torchrl_env
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
 from collectors.experts import expert_env_kwargs, make_expert
 from collectors.ray_jobs import ray_connection
-from d2a_agents.policy.checkpoints import evaluate_checkpoint
+from d2a_agents.policy.checkpoints import Acting, evaluate_checkpoint
 from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 from d2a_envs.tasks import DIFFICULTIES
 
@@ -78,13 +78,14 @@ class ExpertBenchConfig:
     imitation_episodes: int = 100
     imitation_dart_noise: float = 0.0  # DART noise of the check's collection (0: plain demonstrations)
     imitation_steps: int = POLICY_PRESETS["cpu"].steps
+    imitation_action_draws: int = 1  # chunks drawn per plan, acted on as their mean (d2a eval --action-draws)
     workdir: str = "outputs/bench_experts"  # the check's demonstrations and policies
 
 
 def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
     """``mp1-state`` trained (``cpu`` preset, one thread) on ``imitation_demos`` of the expert's
     demonstrations of ``task`` (collected with ``imitation_dart_noise``), its final checkpoint
-    on ``imitation_episodes`` new layouts."""
+    on ``imitation_episodes`` new layouts, acting on the mean of ``imitation_action_draws``."""
     dart = dart_tag(config.imitation_dart_noise)
     data = Path(config.workdir) / "data" / f"{task}{dart}"
     attempts = {"max_attempts_factor": DART_MAX_ATTEMPTS_FACTOR} if dart else {}
@@ -97,7 +98,8 @@ def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
         preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo="mp1-state"),
         steps=config.imitation_steps, demos=config.imitation_demos, eval_episodes=0, threads=1, progress=False))
     return evaluate_checkpoint(run, task, config.imitation_episodes, IMITATION_SEED, workers=config.workers,
-                               end_on_success=True, progress=False, ray_address=config.ray_address)
+                               end_on_success=True, progress=False, ray_address=config.ray_address,
+                               acting=Acting(action_draws=config.imitation_action_draws))
 
 
 def _expert(task: str) -> functools.partial:
@@ -195,7 +197,8 @@ def _run(config: ExpertBenchConfig) -> list[dict[str, object]]:
         f"\nExperts, {config.episodes} episodes per task (seeds {config.seed}..{last_seed}),"
         f" {config.max_steps} steps, env {config.env_kwargs}, {config.workers} workers\n"
     )
-    imitation_header = (f" mp1-state on {config.imitation_demos} demonstrations [95 %] | of the expert's |"
+    draws = f", mean of {config.imitation_action_draws} draws" if config.imitation_action_draws > 1 else ""
+    imitation_header = (f" mp1-state on {config.imitation_demos} demonstrations{draws} [95 %] | of the expert's |"
                         if config.imitation_demos else "")
     print("| task | difficulty | success | mean return | median first-success step |" + imitation_header)
     print("| --- | --- | --- | --- | --- |" + (" --- | --- |" if config.imitation_demos else ""))

@@ -367,7 +367,8 @@ def cmd_bench_experts(args: argparse.Namespace) -> None:
     run(_replace_given(base, tasks=tuple(args.task) if args.task else None, episodes=args.episodes,
                        workers=args.workers, ray_address=args.ray, imitation_demos=args.imitation_demos,
                        imitation_episodes=args.imitation_episodes, workdir=args.workdir,
-                       imitation_dart_noise=args.imitation_dart_noise))
+                       imitation_dart_noise=args.imitation_dart_noise,
+                       imitation_action_draws=args.imitation_action_draws))
 
 
 def cmd_bench_tune_expert(args: argparse.Namespace) -> None:
@@ -728,6 +729,8 @@ def build_parser() -> argparse.ArgumentParser:
                                help="its evaluation episodes on new layouts (default 100)")
     bench_experts.add_argument("--imitation-dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
                                help="collect the check's demonstrations with DART noise (d2a collect --dart-noise)")
+    bench_experts.add_argument("--imitation-action-draws", type=POSITIVE, default=None, metavar="K",
+                               help="its policy acts on the mean of K chunks per plan (d2a eval --action-draws)")
     bench_experts.add_argument("--workdir", default=None, help="the check's data and policies")
     _add_ray_option(bench_experts)
     bench_experts.set_defaults(func=cmd_bench_experts)

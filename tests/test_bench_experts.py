@@ -26,3 +26,17 @@ def test_the_check_collects_with_dart_noise_apart_when_asked(tmp_path):
     dataset = DemoDataset.open(tmp_path / "data" / "reach_dart0.05")
     assert dataset.metadata.collections[0].dart_noise == 0.05
     assert (tmp_path / "runs" / "reach_mp1-state_d1_dart0.05" / "policy.pt").exists()
+
+
+def test_the_check_evaluates_with_the_draws_it_is_given(tmp_path, monkeypatch):
+    import benchmarks.experts
+
+    seen = []
+    real = benchmarks.experts.evaluate_checkpoint
+    monkeypatch.setattr(benchmarks.experts, "evaluate_checkpoint",
+                        lambda *args, acting, **kwargs: seen.append(acting) or real(*args, acting=acting, **kwargs))
+    config = ExpertBenchConfig(tasks=("reach",), env_kwargs={"image_size": 32, "num_points": 32}, workers=1,
+                               imitation_demos=1, imitation_episodes=1, imitation_steps=2, workdir=str(tmp_path),
+                               imitation_action_draws=4)
+    assert imitation_success(config, "reach").episodes == 1
+    assert [acting.action_draws for acting in seen] == [4]
