@@ -151,6 +151,16 @@ def episode_bounds(frames: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, 
     return ids, lengths.cumsum(0) - lengths, lengths
 
 
+def future_rows(frames: TensorDictBase, horizon: int) -> torch.Tensor:
+    """For every row of ``frames``, the row ``horizon`` steps later in its episode (the
+    episode's last row where it ends sooner)."""
+    _, starts, lengths = episode_bounds(frames)
+    offsets = torch.cat([torch.arange(int(length)) for length in lengths])
+    first = torch.repeat_interleave(starts, lengths)
+    last = torch.repeat_interleave(starts + lengths - 1, lengths)
+    return torch.minimum(first + offsets + horizon, last)
+
+
 class DemoWindows(Dataset):
     """Every policy-training window of the chosen episodes of ``frames``.
 

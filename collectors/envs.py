@@ -12,10 +12,14 @@ from torchrl.envs import EnvBase, GymWrapper, StepCounter, TransformedEnv
 from torchrl.envs.gym_like import BaseInfoDictReader
 
 import d2a_envs
+from collectors.expert_future import ExpertFuture
 from d2a_envs.wrappers import EndOnSuccess, SeedEachReset
 
 # Key of the simulator state under TorchRL: GymWrapper renames a Dict entry "state" to "observation".
 STATE_KEY = "observation"
+# An env option of make_torchrl_env only (gym.make has no simulator look-ahead): the keyword
+# arguments of :class:`~collectors.expert_future.ExpertFuture`, the true future cloud.
+EXPERT_FUTURE_KEY = "expert_future"
 
 
 class D2AInfoReader(BaseInfoDictReader):
@@ -55,7 +59,9 @@ def make_torchrl_env(
 
     Every episode gets its own seed (:class:`~d2a_envs.wrappers.SeedEachReset`): with
     ``seed=s`` the episodes use s, s + 1, ... whatever collector drives the env, and each
-    step carries its episode's seed in ``episode_seed``.
+    step carries its episode's seed in ``episode_seed``. ``env_kwargs`` go to ``gym.make``, less
+    :data:`EXPERT_FUTURE_KEY`, whose dict (``horizon``, ``num_points``) adds the expert's true
+    future cloud (:class:`~collectors.expert_future.ExpertFuture`).
 
     Example:
         >>> env = make_torchrl_env("hammer", {"num_points": 512})
@@ -63,7 +69,11 @@ def make_torchrl_env(
         torch.Size([3])
     """
     spec = d2a_envs.get_task(task)
-    env = gym.make(spec.env_id, **(env_kwargs or {}))
+    env_kwargs = dict(env_kwargs or {})
+    future = env_kwargs.pop(EXPERT_FUTURE_KEY, None)
+    env = gym.make(spec.env_id, **env_kwargs)
+    if future is not None:
+        env = ExpertFuture(env, **future)
     env = GymWrapper(SeedEachReset(EndOnSuccess(env) if end_on_success else env, seed=seed))
     env.set_info_dict_reader(D2AInfoReader())
     return TransformedEnv(env, StepCounter())

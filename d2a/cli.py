@@ -15,8 +15,8 @@ if TYPE_CHECKING:
     from d2a_agents.policy.checkpoints import Acting
 
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
-ALGOS = ("d2a", "d2a-change", "d2a-change-top", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "mp1", "dp3",
-         "flowpolicy", "edm", "cp", "dp", "mp1-state")
+ALGOS = ("d2a", "d2a-change", "d2a-change-top", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "d2a-oracle",
+         "mp1", "dp3", "flowpolicy", "edm", "cp", "dp", "mp1-state")
 EVAL_LAYOUTS = ("fixed", "fresh")  # d2a_agents.policy.train.EVAL_LAYOUTS, likewise
 EXPERT_KINDS = ("controller", "planner")  # collectors.adroit_experts.EXPERT_KINDS, likewise
 

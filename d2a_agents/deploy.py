@@ -39,11 +39,12 @@ import numpy as np
 import d2a_envs
 from d2a_agents.policy.agent import VARIANTS
 from d2a_agents.policy.checkpoints import Acting, load_policy
-from d2a_agents.world_model.imagine import IMAGINED_KEY, Imaginer
+from d2a_agents.world_model.imagine import Imaginer
 from d2a_envs.camera import camera_id
 from d2a_envs.depth import make_depth_backend
 from d2a_envs.rgbd import RGBDFrame, fuse_frames, mujoco_frame
 from d2a_envs.sampling import CropBox
+from d2a_envs.wrappers import IMAGINED_KEY
 
 
 class CameraRig(Protocol):
@@ -119,6 +120,9 @@ class DeploymentLoop:
         if self.policy.config.encoder.use_image:
             raise ValueError(f"{checkpoint} is a {self.policy.config.algo} policy, which reads a camera image: the "
                              "deployment loop feeds fused clouds (a policy that reads clouds acts here)")
+        if self.policy.config.variant.imagination == "oracle":
+            raise ValueError(f"{checkpoint} is a d2a-oracle policy: it reads the simulator's true future, which a "
+                             "robot has not got (a d2a policy imagines it with its world model)")
         task = payload["tasks"][0]
         env_kwargs = payload["env_kwargs"][task]
         suite = d2a_envs.SUITE_DEFAULTS[d2a_envs.get_task(task).suite]

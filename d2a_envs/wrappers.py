@@ -15,6 +15,9 @@ from d2a_envs.sensor import PointCloudConfig, PointCloudSensor
 
 # The colour image observation of 2D image policies (``--algo dp``).
 IMAGE_KEY = "image"
+# The second cloud of the imagining policies: a world model's imagined future
+# (``d2a_agents.world_model.observation``) or the simulator's true one (``collectors.expert_future``).
+IMAGINED_KEY = "imagined_point_cloud"
 
 
 def point_cloud_space(config: PointCloudConfig) -> spaces.Box:

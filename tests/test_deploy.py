@@ -15,8 +15,8 @@ from d2a_agents.policy.agent import PolicyConfig
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME
 from d2a_agents.policy.networks import EncoderConfig, VelocityNetConfig
 from d2a_agents.policy.train import TrainPolicyConfig, train_policy
-from d2a_agents.world_model.imagine import IMAGINED_KEY
 from d2a_envs.rgbd import fuse_frames
+from d2a_envs.wrappers import IMAGINED_KEY
 
 ENV_KWARGS = {"image_size": 48, "num_points": 128}  # the conftest's reach_data settings
 
@@ -171,6 +171,12 @@ def test_an_image_policy_is_refused_by_the_cloud_deployment_loop(tmp_path, sim):
                                    eval_episodes=0, progress=False))
     with pytest.raises(ValueError, match="reads a camera image"):
         DeploymentLoop(str(tmp_path / "run" / CHECKPOINT_NAME), cameras, robot)
+
+
+def test_an_oracle_policy_is_refused_by_the_robot_loop(reach_data, tmp_path, sim):
+    _, robot, cameras = sim
+    with pytest.raises(ValueError, match="true future"):
+        DeploymentLoop(_checkpoint(reach_data, tmp_path, algo="d2a-oracle"), cameras, robot)
 
 
 def test_a_trained_checkpoint_closes_the_drawer_through_the_loop(tmp_path):

@@ -128,7 +128,7 @@ def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_mode
 def test_d2a_change_trains_and_acts_on_the_voxels_its_world_model_fills(reach_data, world_model, tmp_path):
     import gymnasium as gym
 
-    from d2a_agents.world_model.imagine import IMAGINED_KEY
+    from d2a_envs.wrappers import IMAGINED_KEY
 
     _, history = train_policy(policy_config("d2a-change", reach_data, tmp_path, world_model=world_model))
     assert history[0].episodes == 1
@@ -412,7 +412,7 @@ def test_the_second_cloud_takes_a_point_count_of_its_own(algo, reach_data, world
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
     if algo == "d2a":
         assert eval_env_kwargs(payload, "reach")["imagined_points"] == 32
-    from d2a_agents.world_model.imagine import IMAGINED_KEY
+    from d2a_envs.wrappers import IMAGINED_KEY
 
     observation = {"point_cloud": np.random.default_rng(0).normal(size=(128, 3)).astype(np.float32),
                    "agent_pos": np.zeros(4, np.float32)}
@@ -426,13 +426,34 @@ def test_the_second_cloud_takes_a_point_count_of_its_own(algo, reach_data, world
 
 def test_d2a_present_without_a_count_of_its_own_reads_the_present_cloud_itself(reach_data, tmp_path):
     from d2a_agents.policy.train import training_frames
-    from d2a_agents.world_model.imagine import IMAGINED_KEY
+    from d2a_envs.wrappers import IMAGINED_KEY
 
     config = policy_config("d2a-present", reach_data, tmp_path).policy
     assert IMAGINED_KEY not in config.observation_keys  # the copy is made from the present cloud when encoding
     own = dataclasses.replace(config, imagined_points=config.num_points)
     frames = training_frames(DemoDataset.open(reach_data), own, None, progress=False)
     assert torch.equal(frames[IMAGINED_KEY], frames["point_cloud"])  # the same count: the same points
+
+
+def test_the_oracle_reads_the_demonstrations_future_in_training_and_the_simulators_when_acting(reach_data, tmp_path):
+    from d2a_agents.policy.agent import ORACLE_HORIZON
+    from d2a_agents.policy.train import training_frames
+    from d2a_agents.world_model.triplane import WorldModelConfig
+    from d2a_envs.wrappers import IMAGINED_KEY
+
+    assert ORACLE_HORIZON == WorldModelConfig().horizon  # the future a world model would imagine
+    config = policy_config("d2a-oracle", reach_data, tmp_path)
+    frames = training_frames(DemoDataset.open(reach_data), config.policy, None, progress=False)
+    episode = np.asarray(frames["episode"])
+    for row in (0, 5, int(np.flatnonzero(episode == episode[0])[-1])):  # the last row's future is itself
+        same_episode = np.flatnonzero(episode == episode[row])
+        future = min(row + ORACLE_HORIZON, int(same_episode[-1]))
+        assert torch.equal(frames[IMAGINED_KEY][row], frames["point_cloud"][future])
+    _, history = train_policy(config)
+    assert history[0].episodes == 1  # it acted on the simulator's look-ahead
+    payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
+    assert payload["world_model"] is None
+    assert eval_env_kwargs(payload, "reach")["expert_future"] == {"horizon": ORACLE_HORIZON, "num_points": 64}
 
 
 def test_the_2d_diffusion_policy_trains_on_stored_images_and_acts_on_the_envs(tmp_path):

@@ -31,6 +31,7 @@ def tiny_policy(algo: str, **changes) -> Policy:
     ("d2a-no-cfg", MeanFlow, False, True, ("point_cloud", "agent_pos", "imagined_point_cloud"), 1.0),
     ("d2a-no-imagination", MeanFlow, True, False, ("point_cloud", "agent_pos"), 1.0),
     ("d2a-present", MeanFlow, True, True, ("point_cloud", "agent_pos"), 1.0),  # 2nd encoder: the cloud again
+    ("d2a-oracle", MeanFlow, True, True, ("point_cloud", "agent_pos", "imagined_point_cloud"), 1.0),
     ("mp1", MeanFlow, False, False, ("point_cloud", "agent_pos"), 1.0),
     ("dp3", Diffusion, None, False, ("point_cloud", "agent_pos"), 1000.0),
     ("mp1-state", MeanFlow, False, False, ("state",), 1.0),

@@ -10,6 +10,7 @@ Variants (``--algo``), all on the same encoders, network, data and evaluation:
 | ``d2a-no-cfg`` | MeanFlow, 1 step | cloud + ``agent_pos`` | yes | no |
 | ``d2a-no-imagination`` | MeanFlow, 1 step | cloud + ``agent_pos`` | no | yes |
 | ``d2a-present`` | MeanFlow, 1 step | cloud + ``agent_pos`` | the current cloud again | yes |
+| ``d2a-oracle`` | MeanFlow, 1 step | cloud + ``agent_pos`` | the true future (the expert's, from the simulator) | yes |
 | ``mp1`` | MeanFlow, 1 step | cloud + ``agent_pos`` | no | no |
 | ``dp3`` | diffusion, DDIM 10 steps | cloud + ``agent_pos`` | no | no |
 | ``flowpolicy`` | consistency flow matching, 1 step (FlowPolicy) | cloud + ``agent_pos`` | no | no |
@@ -23,6 +24,10 @@ Variants (``--algo``), all on the same encoders, network, data and evaluation:
 perfect perception at the same budget. ``d2a-present`` is the control of imagination: the
 second encoder reads the current cloud in place of the imagined one (no world model), so
 ``d2a`` against it separates what the imagined future adds from what a second encoder adds.
+``d2a-oracle`` is imagination's upper bound: it reads the cloud the scene really shows
+:data:`ORACLE_HORIZON` steps ahead when the expert acts (the demonstrations' own in training,
+the simulator's look-ahead, :class:`~collectors.expert_future.ExpertFuture`, in evaluation),
+the future a world model trained on those demonstrations aims at, without its errors.
 
 The policy owns its normalizers (min/max to [-1, 1]: actions, the low-dimensional
 observation, and the clouds per axis, the imagined cloud with the current cloud's map) and
@@ -45,9 +50,8 @@ from torch import nn
 from collectors.dataset import Normalizer
 from collectors.envs import STATE_KEY
 from d2a_agents.policy.networks import EncoderConfig, ObservationEncoder, VelocityNet, VelocityNetConfig
-from d2a_agents.world_model.imagine import IMAGINED_KEY
 from d2a_envs.sampling import farthest_point_indices
-from d2a_envs.wrappers import IMAGE_KEY
+from d2a_envs.wrappers import IMAGE_KEY, IMAGINED_KEY
 
 CLOUD_KEYS = ("point_cloud", IMAGINED_KEY)  # normalized with the current cloud's normalizer
 IMAGE_SETTINGS = ("use_image", "image_widths")  # EncoderConfig's; recorded only for image policies
@@ -59,7 +63,8 @@ class Variant:
 
     expert: str  # "meanflow", "diffusion", "edm", "consistency-flow" or "consistency-trajectory"
     # The second cloud encoder's input: "none" (no second encoder), "world-model" (the
-    # imagined cloud) or "present" (the current cloud again, the control of imagination).
+    # imagined cloud), "present" (the current cloud again, the control of imagination) or
+    # "oracle" (the true future cloud, imagination's upper bound; Meta-World evaluation only).
     imagination: str = "none"
     cfg: bool = False
     # "cloud" (cloud + agent_pos), "image" (the camera's colour image + agent_pos) or "state"
@@ -75,6 +80,7 @@ VARIANTS: dict[str, Variant] = {
     "d2a-no-cfg": Variant("meanflow", imagination="world-model"),
     "d2a-no-imagination": Variant("meanflow", cfg=True),
     "d2a-present": Variant("meanflow", imagination="present", cfg=True),
+    "d2a-oracle": Variant("meanflow", imagination="oracle", cfg=True),
     "mp1": Variant("meanflow"),
     "dp3": Variant("diffusion"),
     "flowpolicy": Variant("consistency-flow"),
@@ -84,6 +90,8 @@ VARIANTS: dict[str, Variant] = {
     "mp1-state": Variant("meanflow", observation="state"),
 }
 ALGORITHMS = tuple(VARIANTS)
+# Steps ahead of ``d2a-oracle``'s future cloud: the world models' horizon (WorldModelConfig.horizon).
+ORACLE_HORIZON = 4
 
 
 def uses_imagination(algo: str) -> bool:
@@ -176,11 +184,12 @@ class PolicyConfig:
 
     @property
     def env_observation_keys(self) -> tuple[str, ...]:
-        """The observations the policy reads from its env (an imagining env adds the imagined cloud)."""
+        """The observations the policy reads from its env (an imagining env adds the imagined
+        cloud, an oracle's the true future one)."""
         encoder = self.encoder
         return (("point_cloud",) if encoder.use_cloud else ()) + ((IMAGE_KEY,) if encoder.use_image else ()) + (
             encoder.state_key,) + (
-            (IMAGINED_KEY,) if self.variant.imagination == "world-model" else ())
+            (IMAGINED_KEY,) if self.variant.imagination in ("world-model", "oracle") else ())
 
     @property
     def executed_actions(self) -> int:

@@ -14,9 +14,18 @@ from pathlib import Path
 from typing import Any
 
 from collectors.dataset import Normalizer
+from collectors.envs import EXPERT_FUTURE_KEY
 from collectors.evaluation import EvaluationResult, evaluate
 from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint
-from d2a_agents.policy.agent import VARIANTS, Policy, PolicyConfig, TorchRLPolicy, normalizer_keys, reads_images
+from d2a_agents.policy.agent import (
+    ORACLE_HORIZON,
+    VARIANTS,
+    Policy,
+    PolicyConfig,
+    TorchRLPolicy,
+    normalizer_keys,
+    reads_images,
+)
 from d2a_envs.defaults import DEFAULT_MAX_EPISODE_STEPS
 from d2a_envs.tasks import get_task
 
@@ -83,9 +92,14 @@ def load_torchrl_policy(path: str | Path, acting: Acting = Acting()) -> TorchRLP
 
 def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
     """The env settings the policy was trained with (less the colour image where the policy reads
-    none: drawing it would only cost time), plus its world model when it imagines."""
+    none: drawing it would only cost time), plus its world model when it imagines, or the
+    simulator's look-ahead (:data:`~collectors.envs.EXPERT_FUTURE_KEY`) for ``d2a-oracle``."""
     unread = ("max_episode_steps",) + (() if reads_images(payload["policy_config"]["algo"]) else ("rgb_image_size",))
     kwargs = {k: v for k, v in payload["env_kwargs"][task].items() if k not in unread}
+    policy = payload["policy_config"]
+    imagined_points = policy.get("imagined_points") or policy["num_points"]  # what the policy reads
+    if VARIANTS[policy["algo"]].imagination == "oracle":
+        kwargs[EXPERT_FUTURE_KEY] = {"horizon": ORACLE_HORIZON, "num_points": imagined_points}
     world_model = payload["world_model"]
     if world_model is not None:
         if not Path(world_model).is_file():
@@ -93,8 +107,7 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
         if file_sha256(world_model) != payload.get("world_model_sha256"):
             raise CheckpointError(f"the policy's world model {world_model} has changed since the policy was trained")
         kwargs["world_model"] = str(Path(world_model).resolve())
-        policy = payload["policy_config"]
-        kwargs["imagined_points"] = policy.get("imagined_points") or policy["num_points"]  # what the policy reads
+        kwargs["imagined_points"] = imagined_points
         imagined = VARIANTS[policy["algo"]].imagined
         if imagined != "future":
             kwargs["imagined_output"] = imagined

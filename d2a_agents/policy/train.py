@@ -25,12 +25,13 @@ from torchrl.record.loggers import get_logger
 from tqdm import tqdm
 
 from collectors.atomic import exclusive_writer
-from collectors.dataset import DemoWindows, Normalizer, WindowConfig, episode_bounds
+from collectors.dataset import DemoWindows, Normalizer, WindowConfig, episode_bounds, future_rows
 from collectors.storage import DemoDataset
 from d2a_agents.checkpoint import CheckpointError, file_sha256, load_for_resume, save_checkpoint
 from d2a_agents.policy.agent import (
     CPU_POLICY_PRESET,
     IMAGINED_KEY,
+    ORACLE_HORIZON,
     Policy,
     PolicyConfig,
     normalizer_keys,
@@ -212,8 +213,8 @@ def training_frames(
 ) -> TensorDict:
     """In-memory frames for the windows: the observations the policy reads (clouds
     subsampled to ``config.num_points`` by FPS, images as stored) and, for imagination variants, the world
-    model's imagined cloud of every step (or ``d2a-present``'s own copy of the present), at
-    ``config.imagined_point_count``."""
+    model's imagined cloud of every step (``d2a-oracle``'s true future cloud, ``d2a-present``'s own
+    copy of the present), at ``config.imagined_point_count``."""
     frames = dataset.frames()
     state_key = config.encoder.state_key
     data = {state_key: torch.as_tensor(frames[state_key]).float(), "action": torch.as_tensor(frames["action"]).float(),
@@ -234,6 +235,14 @@ def training_frames(
             cloud = imaginer(frames["point_cloud"][table.rows[row]], table.past_actions(torch.tensor(row)))
             imagined.append(subsample_cloud(torch.as_tensor(cloud), config.imagined_point_count))
         data[IMAGINED_KEY] = torch.stack(imagined)
+    elif config.variant.imagination == "oracle":  # the demonstration's own cloud ORACLE_HORIZON steps ahead
+        futures = future_rows(frames, ORACLE_HORIZON)
+        if config.imagined_point_count == config.num_points:
+            data[IMAGINED_KEY] = data["point_cloud"][futures]
+        else:
+            clouds = torch.as_tensor(frames["point_cloud"])
+            data[IMAGINED_KEY] = torch.stack(
+                [subsample_cloud(clouds[row], config.imagined_point_count) for row in futures.tolist()])
     elif IMAGINED_KEY in config.observation_keys:  # d2a-present with a point count of its own
         data[IMAGINED_KEY] = torch.stack(
             [subsample_cloud(c, config.imagined_point_count) for c in torch.as_tensor(frames["point_cloud"])])

@@ -15,7 +15,6 @@ from d2a_agents.world_model.voxels import VoxelGrid
 from d2a_envs.sampling import CropBox, sample_to_size
 
 CHECKPOINT_KIND = "world_model"
-IMAGINED_KEY = "imagined_point_cloud"  # the observation an imagining env adds
 # What the imagined cloud holds: "future", the cloud H steps ahead (the paper's P_{t+H});
 # "change", the voxels the model fills that are empty now (where something will be that is
 # not there yet), so that all of a small cloud lies on what moves; "change-top", the likeliest

@@ -27,9 +27,9 @@ from torchrl.data import Bounded, Composite
 from torchrl.envs import Transform
 
 from d2a_agents.checkpoint import CheckpointError
-from d2a_agents.world_model.imagine import IMAGINED_KEY, Imaginer
+from d2a_agents.world_model.imagine import Imaginer
 from d2a_envs.sampling import CropBox
-from d2a_envs.wrappers import PointCloudObservation
+from d2a_envs.wrappers import IMAGINED_KEY, PointCloudObservation
 
 __all__ = ["IMAGINED_KEY", "ImaginationTransform", "ImaginationWrapper", "check_world_model", "load_imaginer"]
 # Crop boxes read back from float32 spaces/specs differ from the float64 box of a
