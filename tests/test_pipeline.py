@@ -402,7 +402,7 @@ def test_bench_change_measures_every_cloud_on_held_out_transitions(reach_data, w
     assert "| imagined change |" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("algo", ["d2a", "d2a-present"])
+@pytest.mark.parametrize("algo", ["d2a", "d2a-present", "d2a-oracle"])
 def test_the_second_cloud_takes_a_point_count_of_its_own(algo, reach_data, world_model, tmp_path):
     config = policy_config(algo, reach_data, tmp_path, world_model=world_model if algo == "d2a" else None)
     config = dataclasses.replace(config, policy=dataclasses.replace(config.policy, imagined_points=32))
@@ -412,11 +412,13 @@ def test_the_second_cloud_takes_a_point_count_of_its_own(algo, reach_data, world
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
     if algo == "d2a":
         assert eval_env_kwargs(payload, "reach")["imagined_points"] == 32
+    if algo == "d2a-oracle":
+        assert eval_env_kwargs(payload, "reach")["expert_future"]["num_points"] == 32
     from d2a_envs.wrappers import IMAGINED_KEY
 
     observation = {"point_cloud": np.random.default_rng(0).normal(size=(128, 3)).astype(np.float32),
                    "agent_pos": np.zeros(4, np.float32)}
-    if algo == "d2a":
+    if algo != "d2a-present":  # the env serves the second cloud
         observation[IMAGINED_KEY] = observation["point_cloud"]
     policy.reset(seed=0)
     policy.select_action(observation)

@@ -235,17 +235,12 @@ def training_frames(
             cloud = imaginer(frames["point_cloud"][table.rows[row]], table.past_actions(torch.tensor(row)))
             imagined.append(subsample_cloud(torch.as_tensor(cloud), config.imagined_point_count))
         data[IMAGINED_KEY] = torch.stack(imagined)
-    elif config.variant.imagination == "oracle":  # the demonstration's own cloud ORACLE_HORIZON steps ahead
-        futures = future_rows(frames, ORACLE_HORIZON)
-        if config.imagined_point_count == config.num_points:
-            data[IMAGINED_KEY] = data["point_cloud"][futures]
-        else:
-            clouds = torch.as_tensor(frames["point_cloud"])
-            data[IMAGINED_KEY] = torch.stack(
-                [subsample_cloud(clouds[row], config.imagined_point_count) for row in futures.tolist()])
-    elif IMAGINED_KEY in config.observation_keys:  # d2a-present with a point count of its own
-        data[IMAGINED_KEY] = torch.stack(
-            [subsample_cloud(c, config.imagined_point_count) for c in torch.as_tensor(frames["point_cloud"])])
+    elif IMAGINED_KEY in config.observation_keys:  # d2a-oracle, or d2a-present with a point count of its own
+        count = config.imagined_point_count
+        clouds = data["point_cloud"] if count == config.num_points else torch.stack(
+            [subsample_cloud(c, count) for c in torch.as_tensor(frames["point_cloud"])])
+        oracle = config.variant.imagination == "oracle"  # the demonstration's own cloud ORACLE_HORIZON steps ahead
+        data[IMAGINED_KEY] = clouds[future_rows(frames, ORACLE_HORIZON)] if oracle else clouds
     return TensorDict(data, batch_size=[len(data["action"])])
 
 
