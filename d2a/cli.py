@@ -118,6 +118,7 @@ def _add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: st
     """The options every grid bench (table1, table4) shares."""
     parser.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="default: 0 1 2")
     parser.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
+    _add_point_budget_options(parser)
     parser.add_argument("--evaluations", type=POSITIVE, default=None, help="periodic evaluations (default 5)")
     _add_eval_layouts_option(parser)
     parser.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
@@ -127,6 +128,22 @@ def _add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: st
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch threads per cell (default 1)")
     parser.add_argument("--report", action="store_true", help="only write the report of the finished cells")
     _add_ray_option(parser)
+
+
+def _add_point_budget_options(parser: argparse.ArgumentParser) -> None:
+    """The policy's point budget in a success bench (cells named with the preset's digest)."""
+    parser.add_argument("--policy-points", type=POSITIVE, default=None,
+                        help="points per cloud the encoders read (default: the preset's 64); cells named with the "
+                             "preset's digest")
+    parser.add_argument("--imagined-points", type=POSITIVE, default=None,
+                        help="points of the second cloud encoder's input (default: --policy-points); cells named "
+                             "with the preset's digest")
+
+
+def _with_policy_options(bench: Any, args: argparse.Namespace) -> Any:
+    """A success bench's per-cell settings with the policy options given (steps, point budget)."""
+    policy = _replace_given(bench.policy.policy, num_points=args.policy_points, imagined_points=args.imagined_points)
+    return dataclasses.replace(bench, policy=_replace_given(bench.policy, steps=args.steps, policy=policy))
 
 
 def _replace_given(instance: Any, **changes: object) -> Any:
@@ -437,10 +454,7 @@ def cmd_bench_change(args: argparse.Namespace) -> None:
 def cmd_bench_success(args: argparse.Namespace) -> None:
     from benchmarks.success import PRESETS, run
 
-    base = PRESETS[args.preset]
-    if args.imagined_points is not None:
-        base = dataclasses.replace(base, policy=dataclasses.replace(
-            base.policy, policy=dataclasses.replace(base.policy.policy, imagined_points=args.imagined_points)))
+    base = _with_policy_options(PRESETS[args.preset], args)
     env_kwargs = {k: v for k, v in dict(image_size=args.image_size, num_points=args.num_points,
                                         backend=args.backend).items() if v is not None}
     world_model = None
@@ -450,7 +464,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         # cpu: d2a train-wm's cpu preset (128x128x32, point-scatter); demo: the demo's 32x32x8 Conv3d
         world_model = CPU_PRESET if args.world_model == "cpu" else WorldModelConfig(resolution=(32, 32, 8))
     run(_replace_given(
-        base, policy=_replace_given(base.policy, steps=args.steps), tasks=tuple(args.task) if args.task else None,
+        base, tasks=tuple(args.task) if args.task else None,
         algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
         workdir=args.workdir, workers=args.workers, env_kwargs=env_kwargs or None, world_model=world_model,
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
@@ -462,9 +476,9 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
 
 def _grid_cells(base: Any, args: argparse.Namespace) -> Any:
     """A grid bench's per-cell settings (``SuccessBenchConfig``) with the options given."""
-    return _replace_given(base, workdir=args.workdir, threads=args.threads, ray_address=args.ray,
-                          evaluations=args.evaluations, eval_layouts=args.eval_layouts, workers=args.workers,
-                          policy=_replace_given(base.policy, steps=args.steps))
+    return _replace_given(_with_policy_options(base, args), workdir=args.workdir, threads=args.threads,
+                          ray_address=args.ray, evaluations=args.evaluations, eval_layouts=args.eval_layouts,
+                          workers=args.workers)
 
 
 def cmd_bench_table1(args: argparse.Namespace) -> None:
@@ -822,9 +836,7 @@ def build_parser() -> argparse.ArgumentParser:
                                help="demonstrations collected per task (default: --demos); a workdir with cells of "
                                     "several counts collects the largest, so world models validate on the rest")
     bench_success.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
-    bench_success.add_argument("--imagined-points", type=POSITIVE, default=None,
-                               help="points of the second cloud encoder's input (default: the preset's 64); cells "
-                                    "named with the preset's digest")
+    _add_point_budget_options(bench_success)
     bench_success.add_argument("--evaluations", type=POSITIVE, default=None,
                                help="periodic evaluations during training, the last at the final step; the paper "
                                     "protocol averages the best 5 (default: the preset's, cpu 5, paper 15)")

@@ -278,6 +278,9 @@ def test_demos_reach_the_trainers_and_the_bench(captured):
     assert (captured["config"].wm_rollouts, captured["config"].rollout_noise) == (20, 0.5)
     main(["bench", "success", "--imagined-points", "256"])
     assert captured["config"].policy.policy.imagined_points == 256 and captured["config"].policy.policy.num_points == 64
+    main(["bench", "success", "--policy-points", "128", "--steps", "300"])
+    policy = captured["config"].policy
+    assert (policy.steps, policy.policy.num_points, policy.policy.imagined_points) == (300, 128, None)
 
 
 def test_bench_table1_options_and_defaults(monkeypatch):
@@ -294,3 +297,10 @@ def test_bench_table1_options_and_defaults(monkeypatch):
     assert (config.groups, config.algos, config.seeds, config.results) == (("hard",), ("d2a",), (2,), "r")
     assert (config.bench.evaluations, config.bench.workdir, seen["report"]) == (15, "w", True)
     assert config.cell_config().env_kwargs == {"num_points": 4096, "image_size": 256, "backend": "render"}
+    default = benchmarks.table1.Table1Config().cell_config()
+    assert config.bench.policy == default.policy  # the cpu preset: cells keep their short names
+    main(["bench", "table1", "--policy-points", "128"])
+    budget = seen["config"].cell_config()
+    assert (budget.policy.policy.num_points, budget.policy.steps) == (128, default.policy.steps)
+    cell_path = benchmarks.success.cell_path
+    assert cell_path(budget, "push", "mp1", 0) != cell_path(default, "push", "mp1", 0)
