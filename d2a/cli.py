@@ -118,7 +118,7 @@ def _add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: st
     """The options every grid bench (table1, table4) shares."""
     parser.add_argument("--seed", type=NON_NEGATIVE, action="append", default=None, help="default: 0 1 2")
     parser.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
-    _add_point_budget_options(parser)
+    _add_policy_options(parser)
     parser.add_argument("--evaluations", type=POSITIVE, default=None, help="periodic evaluations (default 5)")
     _add_eval_layouts_option(parser)
     parser.add_argument("--workers", type=POSITIVE, default=None, help="evaluation worker processes")
@@ -130,19 +130,26 @@ def _add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: st
     _add_ray_option(parser)
 
 
-def _add_point_budget_options(parser: argparse.ArgumentParser) -> None:
-    """The policy's point budget in a success bench (cells named with the preset's digest)."""
+def _add_policy_options(parser: argparse.ArgumentParser) -> None:
+    """The policy settings a success bench can change (its cells are named with the preset's digest)."""
     parser.add_argument("--policy-points", type=POSITIVE, default=None,
                         help="points per cloud the encoders read (default: the preset's 64); cells named with the "
                              "preset's digest")
     parser.add_argument("--imagined-points", type=POSITIVE, default=None,
                         help="points of the second cloud encoder's input (default: --policy-points); cells named "
                              "with the preset's digest")
+    _add_oracle_horizon_option(parser)
+
+
+def _add_oracle_horizon_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--oracle-horizon", type=POSITIVE, default=None,
+                        help="steps ahead of d2a-oracle's true future cloud (default 4, the world models' horizon)")
 
 
 def _with_policy_options(bench: Any, args: argparse.Namespace) -> Any:
     """A success bench's per-cell settings with the policy options given (steps, point budget)."""
-    policy = _replace_given(bench.policy.policy, num_points=args.policy_points, imagined_points=args.imagined_points)
+    policy = _replace_given(bench.policy.policy, num_points=args.policy_points, imagined_points=args.imagined_points,
+                            oracle_horizon=args.oracle_horizon)
     return dataclasses.replace(bench, policy=_replace_given(bench.policy, steps=args.steps, policy=policy))
 
 
@@ -331,7 +338,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                             trim_after_success=args.trim_after_success)
     policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
                             n_action_steps=args.n_action_steps, num_points=args.policy_points,
-                            imagined_points=args.imagined_points,
+                            imagined_points=args.imagined_points, oracle_horizon=args.oracle_horizon,
                             cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
                             cfg_guidance=args.cfg_guidance, cfg_scale=args.cfg_scale,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
@@ -635,6 +642,7 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--imagined-points", type=POSITIVE, default=None,
                               help="points of the second cloud (the imagined one, or d2a-present's copy of the "
                                    "present; default: --policy-points)")
+    _add_oracle_horizon_option(train_policy)
     train_policy.add_argument("--cfg-similarity", choices=("velocity", "prediction"), default=None,
                               help="rho of the adaptive CFG gate: cos(u_cond, u_null) (default) or cos(v, u_null) "
                                    "with v the sampled velocity (MeanFlow's CFG reading)")
@@ -836,7 +844,7 @@ def build_parser() -> argparse.ArgumentParser:
                                help="demonstrations collected per task (default: --demos); a workdir with cells of "
                                     "several counts collects the largest, so world models validate on the rest")
     bench_success.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
-    _add_point_budget_options(bench_success)
+    _add_policy_options(bench_success)
     bench_success.add_argument("--evaluations", type=POSITIVE, default=None,
                                help="periodic evaluations during training, the last at the final step; the paper "
                                     "protocol averages the best 5 (default: the preset's, cpu 5, paper 15)")

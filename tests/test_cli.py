@@ -272,15 +272,16 @@ def test_demos_reach_the_trainers_and_the_bench(captured):
     assert (captured["config"].demos, captured["config"].pool, captured["config"].cells) == (1, 20, "kept/cells")
     main(["train-policy", "--data", "d", "--out", "o"])
     assert captured["config"].demos is None  # every episode
-    main(["train-policy", "--data", "d", "--out", "o", "--imagined-points", "256"])
-    assert captured["config"].policy.imagined_points == 256
+    main(["train-policy", "--data", "d", "--out", "o", "--imagined-points", "256", "--oracle-horizon", "12"])
+    assert (captured["config"].policy.imagined_points, captured["config"].policy.oracle_horizon) == (256, 12)
     main(["bench", "success", "--wm-rollouts", "20", "--rollout-noise", "0.5"])
     assert (captured["config"].wm_rollouts, captured["config"].rollout_noise) == (20, 0.5)
     main(["bench", "success", "--imagined-points", "256"])
     assert captured["config"].policy.policy.imagined_points == 256 and captured["config"].policy.policy.num_points == 64
-    main(["bench", "success", "--policy-points", "128", "--steps", "300"])
+    main(["bench", "success", "--policy-points", "128", "--steps", "300", "--oracle-horizon", "8"])
     policy = captured["config"].policy
     assert (policy.steps, policy.policy.num_points, policy.policy.imagined_points) == (300, 128, None)
+    assert policy.policy.oracle_horizon == 8
 
 
 def test_bench_table1_options_and_defaults(monkeypatch):

@@ -443,19 +443,24 @@ def test_the_oracle_reads_the_demonstrations_future_in_training_and_the_simulato
     from d2a_agents.world_model.triplane import WorldModelConfig
     from d2a_envs.wrappers import IMAGINED_KEY
 
-    assert ORACLE_HORIZON == WorldModelConfig().horizon  # the future a world model would imagine
+    assert ORACLE_HORIZON == WorldModelConfig().horizon  # the future a world model would imagine, by default
+    assert PolicyConfig(algo="d2a-oracle").oracle_horizon == ORACLE_HORIZON
     config = policy_config("d2a-oracle", reach_data, tmp_path)
+    horizon = 3  # another horizon than the default, so that the setting is what travels
+    config = dataclasses.replace(config, policy=dataclasses.replace(config.policy, oracle_horizon=horizon))
     frames = training_frames(DemoDataset.open(reach_data), config.policy, None, progress=False)
     episode = np.asarray(frames["episode"])
     for row in (0, 5, int(np.flatnonzero(episode == episode[0])[-1])):  # the last row's future is itself
         same_episode = np.flatnonzero(episode == episode[row])
-        future = min(row + ORACLE_HORIZON, int(same_episode[-1]))
+        future = min(row + horizon, int(same_episode[-1]))
         assert torch.equal(frames[IMAGINED_KEY][row], frames["point_cloud"][future])
     _, history = train_policy(config)
     assert history[0].episodes == 1  # it acted on the simulator's look-ahead
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
     assert payload["world_model"] is None
-    assert eval_env_kwargs(payload, "reach")["expert_future"] == {"horizon": ORACLE_HORIZON, "num_points": 64}
+    assert eval_env_kwargs(payload, "reach")["expert_future"] == {"horizon": horizon, "num_points": 64}
+    del payload["policy_config"]["oracle_horizon"]  # a checkpoint written before the setting: the default
+    assert eval_env_kwargs(payload, "reach")["expert_future"]["horizon"] == ORACLE_HORIZON
 
 
 def test_the_2d_diffusion_policy_trains_on_stored_images_and_acts_on_the_envs(tmp_path):

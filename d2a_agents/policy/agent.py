@@ -25,7 +25,7 @@ perfect perception at the same budget. ``d2a-present`` is the control of imagina
 second encoder reads the current cloud in place of the imagined one (no world model), so
 ``d2a`` against it separates what the imagined future adds from what a second encoder adds.
 ``d2a-oracle`` is imagination's upper bound: it reads the cloud the scene really shows
-:data:`ORACLE_HORIZON` steps ahead when the expert acts (the demonstrations' own in training,
+``oracle_horizon`` steps ahead when the expert acts (the demonstrations' own in training,
 the simulator's look-ahead, :class:`~collectors.expert_future.ExpertFuture`, in evaluation),
 the future a world model trained on those demonstrations aims at, without its errors.
 
@@ -90,7 +90,7 @@ VARIANTS: dict[str, Variant] = {
     "mp1-state": Variant("meanflow", observation="state"),
 }
 ALGORITHMS = tuple(VARIANTS)
-# Steps ahead of ``d2a-oracle``'s future cloud: the world models' horizon (WorldModelConfig.horizon).
+# Steps ahead of ``d2a-oracle``'s future cloud by default: the world models' horizon (WorldModelConfig.horizon).
 ORACLE_HORIZON = 4
 
 
@@ -119,6 +119,8 @@ class PolicyConfig:
     n_action_steps: int = 4
     num_points: int = 512
     imagined_points: int | None = None  # None: num_points
+    # Steps ahead of d2a-oracle's true future cloud (other variants ignore it).
+    oracle_horizon: int = ORACLE_HORIZON
     # Map clouds per axis onto [-1, 1] with the min/max of the training clouds (DP3, MP1).
     # False feeds raw metres (an ablation: the encoder then barely sees a 10 cm move).
     normalize_clouds: bool = True
@@ -152,6 +154,8 @@ class PolicyConfig:
                              f"{self.imagined_points}")
         if self.n_action_steps < 1:
             raise ValueError(f"n_action_steps must be at least 1, not {self.n_action_steps}")
+        if self.oracle_horizon < 1:
+            raise ValueError(f"oracle_horizon must be at least 1, not {self.oracle_horizon}")
         variant = self.variant
         state = variant.observation == "state"
         encoder = dataclasses.replace(

@@ -18,8 +18,6 @@ from collectors.envs import EXPERT_FUTURE_KEY
 from collectors.evaluation import EvaluationResult, evaluate
 from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint
 from d2a_agents.policy.agent import (
-    ORACLE_HORIZON,
-    VARIANTS,
     Policy,
     PolicyConfig,
     TorchRLPolicy,
@@ -96,10 +94,9 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
     simulator's look-ahead (:data:`~collectors.envs.EXPERT_FUTURE_KEY`) for ``d2a-oracle``."""
     unread = ("max_episode_steps",) + (() if reads_images(payload["policy_config"]["algo"]) else ("rgb_image_size",))
     kwargs = {k: v for k, v in payload["env_kwargs"][task].items() if k not in unread}
-    policy = payload["policy_config"]
-    imagined_points = policy.get("imagined_points") or policy["num_points"]  # what the policy reads
-    if VARIANTS[policy["algo"]].imagination == "oracle":
-        kwargs[EXPERT_FUTURE_KEY] = {"horizon": ORACLE_HORIZON, "num_points": imagined_points}
+    policy = PolicyConfig.from_dict(payload["policy_config"])
+    if policy.variant.imagination == "oracle":
+        kwargs[EXPERT_FUTURE_KEY] = {"horizon": policy.oracle_horizon, "num_points": policy.imagined_point_count}
     world_model = payload["world_model"]
     if world_model is not None:
         if not Path(world_model).is_file():
@@ -107,10 +104,9 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
         if file_sha256(world_model) != payload.get("world_model_sha256"):
             raise CheckpointError(f"the policy's world model {world_model} has changed since the policy was trained")
         kwargs["world_model"] = str(Path(world_model).resolve())
-        kwargs["imagined_points"] = imagined_points
-        imagined = VARIANTS[policy["algo"]].imagined
-        if imagined != "future":
-            kwargs["imagined_output"] = imagined
+        kwargs["imagined_points"] = policy.imagined_point_count
+        if policy.variant.imagined != "future":
+            kwargs["imagined_output"] = policy.variant.imagined
     return kwargs
 
 

@@ -31,7 +31,6 @@ from d2a_agents.checkpoint import CheckpointError, file_sha256, load_for_resume,
 from d2a_agents.policy.agent import (
     CPU_POLICY_PRESET,
     IMAGINED_KEY,
-    ORACLE_HORIZON,
     Policy,
     PolicyConfig,
     normalizer_keys,
@@ -239,8 +238,8 @@ def training_frames(
         count = config.imagined_point_count
         clouds = data["point_cloud"] if count == config.num_points else torch.stack(
             [subsample_cloud(c, count) for c in torch.as_tensor(frames["point_cloud"])])
-        oracle = config.variant.imagination == "oracle"  # the demonstration's own cloud ORACLE_HORIZON steps ahead
-        data[IMAGINED_KEY] = clouds[future_rows(frames, ORACLE_HORIZON)] if oracle else clouds
+        oracle = config.variant.imagination == "oracle"  # the demonstration's own cloud oracle_horizon steps ahead
+        data[IMAGINED_KEY] = clouds[future_rows(frames, config.oracle_horizon)] if oracle else clouds
     return TensorDict(data, batch_size=[len(data["action"])])
 
 
