@@ -44,12 +44,13 @@ import dataclasses
 import hashlib
 import io
 import json
+import re
 import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from tqdm import tqdm
 
@@ -315,12 +316,30 @@ def _demos_tag(config: SuccessBenchConfig) -> str:
 
 def _preset_tag(preset: PolicyPreset) -> str:
     """'' for the ``cpu`` preset (the bench's default keeps the short name), ``_<name>`` for
-    another named preset, else the steps and a digest of every field (e.g. ``--steps 6000``)."""
+    another named preset, else what differs from the ``cpu`` preset (e.g. ``_steps6000``,
+    ``_num_points128``; a digest of it where that runs long), so that a setting added later
+    with a default leaves the names of cells already stored as they were."""
     for name, known in POLICY_PRESETS.items():
         if preset == known:
             return "" if name == "cpu" else f"_{name}"
-    digest = hashlib.sha1(repr(preset).encode()).hexdigest()[:8]
-    return f"_{preset.steps}steps-{digest}"
+    changes = "_".join(f"{name}{value}" for name, value in _changed_settings(POLICY_PRESETS["cpu"], preset))
+    changes = re.sub(r"[^A-Za-z0-9._,-]", "", changes)
+    if len(changes) > 48:
+        return f"_{preset.steps}steps-{hashlib.sha1(changes.encode()).hexdigest()[:8]}"
+    return f"_{changes}"
+
+
+def _changed_settings(base: Any, other: Any) -> list[tuple[str, Any]]:
+    """(leaf field name, value in ``other``) of every nested dataclass field where ``other``
+    differs from ``base``, in field order."""
+    changed = []
+    for setting in dataclasses.fields(base):
+        ours, theirs = getattr(base, setting.name), getattr(other, setting.name)
+        if dataclasses.is_dataclass(ours) and dataclasses.is_dataclass(theirs):
+            changed += _changed_settings(ours, theirs)
+        elif ours != theirs:
+            changed.append((setting.name, theirs))
+    return changed
 
 
 def cell_path(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> Path:

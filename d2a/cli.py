@@ -131,13 +131,12 @@ def _add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: st
 
 
 def _add_policy_options(parser: argparse.ArgumentParser) -> None:
-    """The policy settings a success bench can change (its cells are named with the preset's digest)."""
+    """The policy settings a success bench can change; its cells are then named by what differs
+    from the ``cpu`` preset (e.g. ``push_mp1_s0_e5_fresh_num_points128``)."""
     parser.add_argument("--policy-points", type=POSITIVE, default=None,
-                        help="points per cloud the encoders read (default: the preset's 64); cells named with the "
-                             "preset's digest")
+                        help="points per cloud the encoders read (default: the preset's 64)")
     parser.add_argument("--imagined-points", type=POSITIVE, default=None,
-                        help="points of the second cloud encoder's input (default: --policy-points); cells named "
-                             "with the preset's digest")
+                        help="points of the second cloud encoder's input (default: --policy-points)")
     _add_oracle_horizon_option(parser)
 
 

@@ -149,7 +149,14 @@ def test_cells_of_another_policy_budget_are_named_apart():
     names = {bench._cell_name(config, "push", "d2a", 1) for config in (cpu, longer, paper)}
     assert len(names) == 3
     assert bench._cell_name(paper, "push", "d2a", 1) == "push_d2a_s1_e15_paper"
-    assert bench._cell_name(longer, "push", "d2a", 1).startswith("push_d2a_s1_e15_6000steps-")
+    assert bench._cell_name(longer, "push", "d2a", 1) == "push_d2a_s1_e15_steps6000"  # what differs from cpu
+    cpu_policy = POLICY_PRESETS["cpu"].policy
+    points = dataclasses.replace(cpu, policy=dataclasses.replace(POLICY_PRESETS["cpu"], policy=dataclasses.replace(
+        cpu_policy, num_points=128, oracle_horizon=12)))
+    assert bench._cell_name(points, "push", "d2a", 1) == "push_d2a_s1_e15_num_points128_oracle_horizon12"
+    wide_policy = dataclasses.replace(cpu_policy, num_points=128, imagined_points=256, oracle_horizon=12)
+    wide = dataclasses.replace(cpu, policy=dataclasses.replace(POLICY_PRESETS["cpu"], steps=6000, policy=wide_policy))
+    assert bench._cell_name(wide, "push", "d2a", 1).startswith("push_d2a_s1_e15_6000steps-")  # too long to spell
     # The tag depends on the preset's fields only, not on the object.
     again = dataclasses.replace(cpu, policy=dataclasses.replace(POLICY_PRESETS["cpu"], steps=6000))
     assert bench._cell_name(again, "push", "d2a", 1) == bench._cell_name(longer, "push", "d2a", 1)
