@@ -131,16 +131,14 @@ def _add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: st
 
 
 def _add_policy_options(parser: argparse.ArgumentParser) -> None:
-    """The policy settings a success bench can change; its cells are then named by what differs
-    from the ``cpu`` preset (e.g. ``push_mp1_s0_e5_fresh_num_points128``)."""
+    """The policy's point budget and the oracle's horizon (in a success bench, cells of a changed
+    preset are named by what differs from the ``cpu`` preset, e.g. ``..._num_points128``)."""
     parser.add_argument("--policy-points", type=POSITIVE, default=None,
-                        help="points per cloud the encoders read (default: the preset's 64)")
+                        help="points per cloud the encoders read, farthest-point sampled from the data's clouds "
+                             "(default: the preset's, cpu 64; the env's cloud size is the data's)")
     parser.add_argument("--imagined-points", type=POSITIVE, default=None,
-                        help="points of the second cloud encoder's input (default: --policy-points)")
-    _add_oracle_horizon_option(parser)
-
-
-def _add_oracle_horizon_option(parser: argparse.ArgumentParser) -> None:
+                        help="points of the second cloud (the imagined one, or d2a-present's copy of the present; "
+                             "default: --policy-points)")
     parser.add_argument("--oracle-horizon", type=POSITIVE, default=None,
                         help="steps ahead of d2a-oracle's true future cloud (default 4, the world models' horizon)")
 
@@ -635,13 +633,7 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--horizon", type=POSITIVE, default=None, help="action chunk length (default 4)")
     train_policy.add_argument("--n-obs-steps", type=POSITIVE, default=None, help="default 2")
     train_policy.add_argument("--n-action-steps", type=POSITIVE, default=None, help="default 4")
-    train_policy.add_argument("--policy-points", type=POSITIVE, default=None,
-                              help="points per cloud the encoders read, farthest-point sampled from the data's "
-                                   "clouds (default: the preset's; the env's cloud size is the data's)")
-    train_policy.add_argument("--imagined-points", type=POSITIVE, default=None,
-                              help="points of the second cloud (the imagined one, or d2a-present's copy of the "
-                                   "present; default: --policy-points)")
-    _add_oracle_horizon_option(train_policy)
+    _add_policy_options(train_policy)
     train_policy.add_argument("--cfg-similarity", choices=("velocity", "prediction"), default=None,
                               help="rho of the adaptive CFG gate: cos(u_cond, u_null) (default) or cos(v, u_null) "
                                    "with v the sampled velocity (MeanFlow's CFG reading)")
