@@ -144,7 +144,8 @@ def _add_policy_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _with_policy_options(bench: Any, args: argparse.Namespace) -> Any:
-    """A success bench's per-cell settings with the policy options given (steps, point budget)."""
+    """A success bench's per-cell settings with the policy options given (steps, point budget,
+    oracle horizon)."""
     policy = _replace_given(bench.policy.policy, num_points=args.policy_points, imagined_points=args.imagined_points,
                             oracle_horizon=args.oracle_horizon)
     return dataclasses.replace(bench, policy=_replace_given(bench.policy, steps=args.steps, policy=policy))
