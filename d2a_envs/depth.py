@@ -10,8 +10,10 @@ sees nothing.
 
 from __future__ import annotations
 
+import atexit
 import itertools
 import os
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Protocol
@@ -250,6 +252,27 @@ def _claim_gl_for_this_process() -> None:
     _gl_owner_pid = os.getpid()
 
 
+# Open renderers, closed at exit before the GL display goes: MuJoCo's EGL context registers
+# eglTerminate with atexit when it is first made, and a renderer collected after that raises
+# EGLError during interpreter shutdown. atexit runs last-registered first, so a hook registered
+# after the first context closes the renderers while the display is still there.
+_open_renderers: weakref.WeakSet[RenderDepth] = weakref.WeakSet()
+_exit_hook_registered = False
+
+
+def _track_for_exit(backend: RenderDepth) -> None:
+    global _exit_hook_registered
+    _open_renderers.add(backend)
+    if not _exit_hook_registered:
+        atexit.register(_close_open_renderers)
+        _exit_hook_registered = True
+
+
+def _close_open_renderers() -> None:
+    for backend in list(_open_renderers):
+        backend.close()
+
+
 # Scene effects the ``render`` backend leaves out of its colour images (see RenderDepth).
 PLAIN_RENDER_OFF = (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION, mujoco.mjtRndFlag.mjRND_SKYBOX)
 
@@ -289,6 +312,7 @@ class RenderDepth:
             for effect in PLAIN_RENDER_OFF:
                 self._renderer.scene.flags[effect] = False
             self._model = model
+            _track_for_exit(self)
         return self._renderer
 
     def capture(

@@ -372,3 +372,18 @@ def test_a_held_action_succeeds_when_any_held_step_does():
     env = ActionRepeat(Scripted(), 3)
     assert env.step(0)[1:] == (3.0, False, False, {"success": True})  # held steps 1-3: the second succeeded
     assert env.step(0)[4] == {"success": False}
+
+
+@requires_render
+def test_a_render_env_left_open_exits_without_gl_errors():
+    """MuJoCo terminates the EGL display at exit; a renderer still open then used to raise
+    EGLError from its finaliser during interpreter shutdown (printed, not fatal)."""
+    import subprocess
+    import sys
+
+    script = ("import gymnasium as gym, d2a_envs\n"
+              "env = gym.make('D2A-MetaWorld-Reach-v0', backend='render', image_size=64, num_points=128)\n"
+              "env.reset(seed=0)\n")
+    finished = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert finished.returncode == 0, finished.stderr
+    assert "Exception ignored" not in finished.stderr, finished.stderr
