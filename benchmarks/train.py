@@ -44,6 +44,9 @@ def _cpu_preset_encoder(**changes: object) -> PolicyPreset:
 FLOAT32_POINTS_CPU_PRESET = _cpu_preset_encoder(point_dtype="float32")
 # The cpu preset encoding the imagined cloud of both observation steps (the preset: the latest).
 EVERY_IMAGINED_CPU_PRESET = _cpu_preset_encoder(imagined_steps=2)
+# The cpu preset at 128 points per cloud (``--policy-points 128``, the Table I point-budget test).
+CPU_PRESET_128_POINTS = dataclasses.replace(
+    POLICY_PRESETS["cpu"], policy=dataclasses.replace(POLICY_PRESETS["cpu"].policy, num_points=128))
 
 
 @dataclass(frozen=True)
@@ -57,7 +60,10 @@ class TrainBenchConfig:
         ("cpu, float32 point MLP", FLOAT32_POINTS_CPU_PRESET, "d2a"),
         ("cpu, both imagined frames", EVERY_IMAGINED_CPU_PRESET, "d2a"),
         ("cpu", POLICY_PRESETS["cpu"], "d2a"),
+        ("cpu, 128 points", CPU_PRESET_128_POINTS, "mp1"),
+        ("cpu, 128 points", CPU_PRESET_128_POINTS, "d2a"),
         ("cpu", POLICY_PRESETS["cpu"], "dp3"),
+        ("cpu, 128 points", CPU_PRESET_128_POINTS, "dp3"),
         ("cpu", POLICY_PRESETS["cpu"], "dp"),
         ("cpu", POLICY_PRESETS["cpu"], "mp1-state"),
     )
