@@ -28,7 +28,9 @@ from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_pol
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
 from d2a_agents.world_model.triplane import WorldModelConfig
 
-TINY = dict(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)), network=VelocityNetConfig(hidden=32, layers=2))
+# Image widths off their default, as the cpu preset's: a cloud policy's checkpoint drops them.
+TINY = dict(num_points=64, encoder=EncoderConfig(point_widths=(16, 32), image_widths=(8, 8, 8, 8)),
+            network=VelocityNetConfig(hidden=32, layers=2))
 
 
 @pytest.fixture(scope="module")

@@ -359,7 +359,9 @@ def adopt_teacher(student: Policy, path: str) -> torch.nn.Module:
     if teacher.config.algo != "edm":
         raise CheckpointError(f"{path} is a {teacher.config.algo} policy; a consistency student distils an edm one")
     shapes = ("horizon", "n_obs_steps", "num_points", "encoder")
-    mismatched = [name for name in shapes if getattr(teacher.config, name) != getattr(student.config, name)]
+    # As checkpoints store them: a cloud policy's checkpoint drops the image encoder's settings.
+    teacher_settings, student_settings = teacher.config.to_dict(), student.config.to_dict()
+    mismatched = [name for name in shapes if teacher_settings[name] != student_settings[name]]
     if mismatched or (teacher.action_dim, teacher.state_dim) != (student.action_dim, student.state_dim):
         raise CheckpointError(f"the teacher {path} was trained with another {', '.join(mismatched) or 'data shape'}: "
                               "train the student with the teacher's settings")
