@@ -66,6 +66,9 @@ class TrainBenchConfig:
         ("cpu, 128 points", CPU_PRESET_128_POINTS, "dp3"),
         ("cpu", POLICY_PRESETS["cpu"], "dp"),
         ("cpu", POLICY_PRESETS["cpu"], "mp1-state"),
+        ("paper", POLICY_PRESETS["paper"], "mp1"),
+        ("paper", POLICY_PRESETS["paper"], "d2a"),
+        ("paper", POLICY_PRESETS["paper"], "dp3"),
     )
     steps: int = 30  # timed steps per row, after 3 warm-up steps
     threads: int = 1

@@ -138,14 +138,16 @@ class Normalizer(nn.Module):
 
 
 def episode_bounds(frames: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(ids, starts, lengths)`` of the episodes in ``frames``, in storage order.
+    """``(ids, starts, lengths)`` of the episodes in ``frames``, in storage order (CPU tensors,
+    wherever ``frames`` lives).
 
     Each episode must occupy one contiguous run of rows, as :class:`~collectors.storage.DemoDataset`
     stores them.
     """
     if "episode" not in frames.keys():
         raise ValueError("frames lack the 'episode' key that tells episodes apart")
-    ids, lengths = torch.unique_consecutive(torch.as_tensor(frames["episode"]).reshape(-1), return_counts=True)
+    episode = torch.as_tensor(frames["episode"]).reshape(-1).cpu()  # bookkeeping stays on the CPU
+    ids, lengths = torch.unique_consecutive(episode, return_counts=True)
     if ids.unique().numel() != ids.numel():
         raise ValueError("an episode id occurs in more than one run of rows: episodes must be contiguous")
     return ids, lengths.cumsum(0) - lengths, lengths
@@ -213,10 +215,11 @@ class DemoWindows(Dataset):
             raise ValueError("no windows: no chosen episode is long enough for this WindowConfig")
         lo, hi = first[current, None], last[current, None]
         start = current[:, None] - config.pad_before
-        self.obs_rows = (start + torch.arange(config.n_obs_steps)).clamp(lo, hi)
-        self.action_rows = (start + torch.arange(config.horizon)).clamp(lo, hi)
-        self.current_rows = current
-        self.steps = step[current]
+        device = frames["episode"].device  # the row tables live with the frames they index
+        self.obs_rows = (start + torch.arange(config.n_obs_steps)).clamp(lo, hi).to(device)
+        self.action_rows = (start + torch.arange(config.horizon)).clamp(lo, hi).to(device)
+        self.current_rows = current.to(device)
+        self.steps = step[current].to(device)
 
     def __len__(self) -> int:
         return self.current_rows.numel()
@@ -226,7 +229,7 @@ class DemoWindows(Dataset):
 
     def get(self, indices: torch.Tensor) -> TensorDict:
         """The windows at ``indices`` (1-d), stacked along a leading batch dimension."""
-        indices = torch.as_tensor(indices, dtype=torch.int64)
+        indices = torch.as_tensor(indices, dtype=torch.int64).to(self.current_rows.device)
         return TensorDict(
             {
                 "obs": {key: self._read(key, self.obs_rows[indices]) for key in self.config.obs_keys},
@@ -244,4 +247,5 @@ class DemoWindows(Dataset):
 
     def sample(self, batch_size: int, generator: torch.Generator | None = None) -> TensorDict:
         """``batch_size`` windows drawn uniformly with replacement (reproducible for a seeded ``generator``)."""
-        return self.get(torch.randint(len(self), (batch_size,), generator=generator))
+        device = generator.device if generator is not None else None  # a CUDA generator draws on the GPU
+        return self.get(torch.randint(len(self), (batch_size,), generator=generator, device=device))
