@@ -50,6 +50,10 @@ ADROIT_COLUMNS = ("adroit-hammer", "adroit-door", "adroit-pen")
 
 # The paper's Table I (success %, mean over each group's tasks; Adroit per task).
 PAPER_TABLE1: dict[str, dict[str, float]] = {
+    "dp": {"easy": 50.7, "medium": 11.0, "hard": 5.25, "very_hard": 22.0,
+           "adroit-hammer": 16, "adroit-door": 34, "adroit-pen": 13},
+    "cp": {"easy": 69.3, "medium": 21.2, "hard": 17.5, "very_hard": 30.0,
+           "adroit-hammer": 45, "adroit-door": 31, "adroit-pen": 13},
     "dp3": {"easy": 87.3, "medium": 44.5, "hard": 32.7, "very_hard": 39.4,
             "adroit-hammer": 100, "adroit-door": 56, "adroit-pen": 46},
     "flowpolicy": {"easy": 84.8, "medium": 58.2, "hard": 40.2, "very_hard": 52.2,
