@@ -41,6 +41,7 @@ from benchmarks.success import (
 )
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import honest_protocol
+from d2a_agents.policy.agent import ALGORITHMS
 from d2a_agents.policy.train import POLICY_PRESETS
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
 
@@ -258,17 +259,26 @@ def write_report(cells: list[Cell], config: Table1Config) -> str:
     return text
 
 
-def finished_cells(config: Table1Config) -> list[Cell]:
-    """The grid's cells already in ``results/cells``, in the grid's order."""
+def finished_cells(config: Table1Config, max_seed: int = 10) -> list[Cell]:
+    """Every Table I cell already in ``results/cells`` at this config's per-cell settings, of any
+    group, method and seed below ``max_seed``, in the grid's order: a run of one group or method
+    reports the others' finished cells too."""
     bench = config.cell_config()
-    return [read_cell(path) for key in plan(config) if (path := cell_path(bench, *key)).exists()]
+    everything = dataclasses.replace(config, groups=GROUPS, algos=tuple(dict.fromkeys((*config.algos, *ALGORITHMS))),
+                                     seeds=tuple(dict.fromkeys((*config.seeds, *range(max_seed)))))
+    return [read_cell(path) for key in plan(everything) if (path := cell_path(bench, *key)).exists()]
 
 
 def run(config: Table1Config = Table1Config(), report_only: bool = False) -> list[Cell]:
-    """Run the grid's missing cells (unless ``report_only``), then print and write the report
-    and the CPU time the finished cells took and the rest would take at their rate."""
+    """Run the grid's missing cells (unless ``report_only``), then print and write the report of
+    every finished cell, and the CPU time the grid's cells took and the rest would take at their
+    rate; returns the grid's cells."""
     grid = plan(config)
-    cells = finished_cells(config) if report_only else run_grid(config.cell_config(), grid)
+    if not report_only:
+        run_grid(config.cell_config(), grid)
+    cells = finished_cells(config)
     print(write_report(cells, config))
-    print("\n" + progress_line(cells, len(grid)))
-    return cells
+    planned = set(grid)
+    in_grid = [cell for cell in cells if (cell.task, cell.algo, cell.seed) in planned]
+    print("\n" + progress_line(in_grid, len(grid)))
+    return in_grid

@@ -39,6 +39,7 @@ from benchmarks.success import (
     summarize,
 )
 from collectors.atomic import atomic_write_text
+from d2a_agents.policy.agent import ALGORITHMS
 from d2a_agents.success_plot import save_figure
 
 TASKS = ("lever-pull", "assembly", "push", "stick-pull")
@@ -164,8 +165,17 @@ def plot(cells: list[Cell], config: Table4Config, path: str | Path) -> Path:
     return save_figure(fig, path)
 
 
+def reported(config: Table4Config, max_seed: int = 10) -> Table4Config:
+    """``config`` widened to what its report shows: every demonstration count, method and seed
+    (below ``max_seed``) of its tasks, so a run of one count or method reports the others' cells."""
+    counts = {*config.demos, *(demos for demos in DEMO_COUNTS if demos <= config.pool)}
+    return dataclasses.replace(config, demos=tuple(sorted(counts)),
+                               algos=tuple(dict.fromkeys((*config.algos, *ALGORITHMS))),
+                               seeds=tuple(dict.fromkeys((*config.seeds, *range(max_seed)))))
+
+
 def finished_cells(config: Table4Config) -> list[Cell]:
-    """The grid's cells already in ``results/cells``, in the grid's order."""
+    """The cells of ``config``'s grid already in ``results/cells``, in the grid's order."""
     return [read_cell(path) for demos, task, algo, seed in plan(config)
             if (path := cell_path(config.cell_config(demos), task, algo, seed)).exists()]
 
@@ -184,14 +194,16 @@ def write_report(cells: list[Cell], config: Table4Config) -> str:
 
 def run(config: Table4Config = Table4Config(), report_only: bool = False) -> list[Cell]:
     """Run the grid's missing cells count by count (unless ``report_only``), then print and
-    write the report and the CPU time the finished cells took."""
-    if report_only:
-        cells = finished_cells(config)
-    else:
-        cells = []
+    write the report of every finished cell of its tasks and the CPU time the grid's cells
+    took; returns the grid's cells."""
+    if not report_only:
         for demos in config.demos:
             grid = [(task, algo, seed) for count, task, algo, seed in plan(config) if count == demos]
-            cells += run_grid(config.cell_config(demos), grid)
-    print(write_report(cells, config))
-    print("\n" + progress_line(cells, len(plan(config))))
-    return cells
+            run_grid(config.cell_config(demos), grid)
+    cells = finished_cells(reported(config))
+    counts = tuple(sorted({cell.demos for cell in cells} | set(config.demos)))
+    print(write_report(cells, dataclasses.replace(config, demos=counts)))  # its methods first, then any other
+    planned = set(plan(config))
+    in_grid = [cell for cell in cells if (cell.demos, cell.task, cell.algo, cell.seed) in planned]
+    print("\n" + progress_line(in_grid, len(planned)))
+    return in_grid

@@ -86,6 +86,22 @@ def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
     assert (tmp_path / "table1.png").stat().st_size > 0
 
 
+def test_a_run_of_one_group_and_method_reports_every_finished_cell(tmp_path):
+    """Group-by-group runs share one report: a `d2a` run on Very Hard keeps the `mp1` rows and the
+    Hard cells that other runs stored, and its progress line counts its own grid only."""
+    config = Table1Config(groups=("very_hard",), algos=("d2a",), seeds=(0,), results=str(tmp_path))
+    for task in VERY_HARD:
+        success._store(config.cell_config(), _cell(task, "mp1", 0, 60))
+    success._store(config.cell_config(), _cell("push", "mp1", 1, 70))
+    success._store(config.cell_config(), _cell(VERY_HARD[0], "d2a", 0, 40))
+    cells = run(config, report_only=True)
+    assert [(cell.task, cell.algo) for cell in cells] == [(VERY_HARD[0], "d2a")]
+    rows = {tuple(part.strip() for part in line.split("|")[1:3]): [entry.strip() for entry in line.split("|")[3:-1]]
+            for line in (tmp_path / "table1.md").read_text().splitlines() if line.startswith("| `")}
+    assert rows["`mp1`", "honest"][3].startswith("60.0 ± 0.0") and rows["`mp1`", "honest"][2] == "70.0 over 1/4 tasks"
+    assert rows["`d2a`", "honest"][3] == "40.0 over 1/5 tasks"
+
+
 def test_a_cell_another_process_holds_is_skipped(tmp_path, monkeypatch):
     config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), seeds=(0, 1), workdir=str(tmp_path))
     trained = []

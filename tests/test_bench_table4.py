@@ -55,6 +55,21 @@ def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
     assert len((tmp_path / "cells.csv").read_text().splitlines()) == 2
 
 
+def test_a_run_of_one_count_and_method_reports_every_finished_cell(tmp_path, capsys):
+    """A `--demos 10 --algo cp` run keeps the 5-demonstration `mp1` cells another run stored in
+    its report (after its own method), and its progress line counts its own grid only."""
+    config = Table4Config(tasks=("push",), demos=(10,), algos=("cp",), seeds=(0,), results=str(tmp_path))
+    wider = Table4Config(tasks=("push",), results=str(tmp_path))
+    success._store(wider.cell_config(5), _cell("push", "mp1", 0, 5, 30))
+    success._store(wider.cell_config(10), _cell("push", "cp", 0, 10, 80))
+    cells = run(config, report_only=True)
+    assert [(cell.algo, cell.demos) for cell in cells] == [("cp", 10)]
+    assert "1 of 1 cells finished" in capsys.readouterr().out
+    text = (tmp_path / "table4.md").read_text()
+    assert _row(text, "honest", 5)[0] == "- / 30 (1) [paper 32 / 50]"  # columns: `cp`, then `mp1`
+    assert _row(text, "honest", 10)[0] == "80 / - (1) [paper 74 / 85]"
+
+
 def test_counts_beyond_the_pool_are_refused():
     with pytest.raises(ValueError, match="1..pool"):
         Table4Config(demos=(5, 25))
