@@ -68,7 +68,7 @@ PAPER_TABLE1: dict[str, dict[str, float]] = {
 ADROIT_PENDING = ("Adroit columns empty: policies barely learn from the Adroit experts' demonstrations (the "
                   "planners': 1-16 %; the controllers': mp1-state 1 % Door, 8 % Hammer); with DART noise and the "
                   "mean of 8 draws per chunk mp1-state reaches 61 % on Door and 59 % on Hammer, the cloud policy "
-                  "mp1 44.5 % on Door and 60 % on Hammer (256 points); they join once a policy can imitate them "
+                  "mp1 44.5 % on Door and 55.5 % on Hammer (256 points, 2 seeds each); they join once a policy can imitate them "
                   "(docs/environments.md).")
 
 
