@@ -5,7 +5,10 @@ of their range, clipped to it) and keeps the perturbation when it succeeds in mo
 tuning episodes, or in as many but sooner. The episodes run on the bare simulator (no point
 clouds) through the expert's own path (the physics vector into a replica, the controller
 there), on layouts ``first_seed ..``, apart from the demonstrations' (0 ..) and the
-evaluations'. Prints the best settings as the config's constructor call, to paste into
+evaluations'. With ``noise``, every tuning episode executes the controller's action plus Gaussian
+noise of that std (as ``d2a collect --dart-noise`` does), drawn from the layout's seed so that
+every candidate meets the same draws: the search then maximises the noise the controller
+tolerates, which bounds the recovery its DART demonstrations can show. Prints the best settings as the config's constructor call, to paste into
 :mod:`collectors.adroit_controllers`, and the time the search took.
 """
 
@@ -53,6 +56,7 @@ class TuneConfig:
         step: perturbation standard deviation as a fraction of each setting's range.
         seed: seed of the perturbations.
         max_steps: episode length (the benchmark's 200).
+        noise: std of the Gaussian noise on every executed action (0: the controller's own actions).
         out: JSON file of every accepted candidate (None: not written).
     """
 
@@ -63,26 +67,33 @@ class TuneConfig:
     step: float = 0.15
     seed: int = 0
     max_steps: int = d2a_envs.DEFAULT_MAX_EPISODE_STEPS
+    noise: float = 0.0
     out: str | None = None
 
     def __post_init__(self) -> None:
         task = d2a_envs.get_task(self.task).task
         if task not in SEARCH_SPACE:
             raise ValueError(f"no controller to tune for {self.task}: tunable are {sorted(SEARCH_SPACE)}")
-        if self.iterations < 0 or self.episodes < 1 or not 0 < self.step <= 1:
-            raise ValueError("iterations >= 0, episodes >= 1 and 0 < step <= 1, please")
+        if self.iterations < 0 or self.episodes < 1 or not 0 < self.step <= 1 or not self.noise >= 0:
+            raise ValueError("iterations >= 0, episodes >= 1, 0 < step <= 1 and noise >= 0, please")
 
 
-def first_successes(task: str, settings: object, seeds: range, max_steps: int) -> list[int | None]:
-    """The step of each episode's first success (None: none within ``max_steps``)."""
+def first_successes(task: str, settings: object, seeds: range, max_steps: int,
+                    noise: float = 0.0) -> list[int | None]:
+    """The step of each episode's first success (None: none within ``max_steps``), the executed
+    actions perturbed by Gaussian noise of std ``noise`` drawn from the episode's seed."""
     env = AdroitEnv(task, state_obs=False, physics_obs=True)
     replica = ControllerReplica(task, settings)
     outcomes: list[int | None] = []
     for seed in seeds:
         observation, _ = env.reset(seed=seed)
+        rng = np.random.default_rng(seed)
         first = None
         for step in range(max_steps):
-            observation, _, _, _, info = env.step(replica.act(observation["physics"]))
+            action = replica.act(observation["physics"])
+            if noise:
+                action = np.clip(action + rng.normal(0.0, noise, action.shape), -1.0, 1.0).astype(action.dtype)
+            observation, _, _, _, info = env.step(action)
             if info["success"]:
                 first = step
                 break
@@ -106,7 +117,7 @@ def run(config: TuneConfig) -> object:
     rng = np.random.default_rng(config.seed)
     start = time.perf_counter()
     best = settings_type()
-    best_score = _score(first_successes(task, best, seeds, config.max_steps), config.max_steps)
+    best_score = _score(first_successes(task, best, seeds, config.max_steps, config.noise), config.max_steps)
     accepted = [{"iteration": 0, "successes": best_score[0], "mean_step": -best_score[1], **dataclasses.asdict(best)}]
     bar = tqdm(range(1, config.iterations + 1), desc=f"tune {task}")
     for iteration in bar:
@@ -115,7 +126,7 @@ def run(config: TuneConfig) -> object:
             low, high = space[name]
             changes[name] = float(np.clip(getattr(best, name) + rng.normal(0.0, config.step * (high - low)), low, high))
         candidate = dataclasses.replace(best, **changes)
-        score = _score(first_successes(task, candidate, seeds, config.max_steps), config.max_steps)
+        score = _score(first_successes(task, candidate, seeds, config.max_steps, config.noise), config.max_steps)
         if score > best_score:
             best, best_score = candidate, score
             accepted.append({"iteration": iteration, "successes": score[0], "mean_step": -score[1],
@@ -123,7 +134,8 @@ def run(config: TuneConfig) -> object:
         bar.set_postfix(successes=f"{best_score[0]}/{config.episodes}", mean_step=f"{-best_score[1]:.1f}")
     minutes = (time.perf_counter() - start) / 60
     fields = ", ".join(f"{name}={round(value, 3)!r}" for name, value in dataclasses.asdict(best).items())
-    print(f"{task}: {best_score[0]}/{config.episodes} tuning episodes solved, first success at step "
+    under = f" under action noise {config.noise}" if config.noise else ""
+    print(f"{task}: {best_score[0]}/{config.episodes} tuning episodes solved{under}, first success at step "
           f"{-best_score[1]:.1f} on average; searched {config.iterations} candidates in {minutes:.1f} min (1 process)")
     print(f"{settings_type.__name__}({fields})")
     if config.out:

@@ -397,7 +397,7 @@ def cmd_bench_tune_expert(args: argparse.Namespace) -> None:
     from benchmarks.tune_expert import TuneConfig, run
 
     run(_replace_given(TuneConfig(), task=args.task, iterations=args.iterations, episodes=args.episodes,
-                       first_seed=args.first_seed, seed=args.seed, out=args.out))
+                       first_seed=args.first_seed, seed=args.seed, noise=args.noise, out=args.out))
 
 
 def cmd_bench_latency(args: argparse.Namespace) -> None:
@@ -756,6 +756,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench_tune.add_argument("--episodes", type=POSITIVE, default=None, help="tuning episodes per candidate (default 8)")
     bench_tune.add_argument("--first-seed", type=NON_NEGATIVE, default=None, help="first tuning layout (default 1000)")
     bench_tune.add_argument("--seed", type=NON_NEGATIVE, default=None, help="seed of the perturbations")
+    bench_tune.add_argument("--noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
+                            help="tune for noise tolerance: Gaussian noise of this std on every executed action "
+                                 "(the DART noise of the demonstrations to come), the same draws for every candidate")
     bench_tune.add_argument("--out", default=None, help="JSON of the accepted candidates")
     bench_tune.set_defaults(func=cmd_bench_tune_expert)
 
