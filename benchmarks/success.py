@@ -59,7 +59,7 @@ from collectors.collect import DART_MAX_ATTEMPTS_FACTOR, CollectConfig, collect,
 from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
 from d2a_agents.policy.agent import reads_images, uses_imagination
-from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, evaluate_checkpoint
+from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, Acting, evaluate_checkpoint
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
@@ -96,6 +96,9 @@ class SuccessBenchConfig:
     # DART noise of the demonstrations (d2a collect --dart-noise): their own data set, world
     # models and cells (``_dart<std>``); 0: plain demonstrations.
     dart_noise: float = 0.0
+    # Every evaluation (periodic and final) acts on the mean of this many chunks per plan
+    # (d2a eval --action-draws; cells ``_draws<k>``): Adroit's DART policies need it.
+    action_draws: int = 1
     workdir: str = "outputs/bench_success"
     cells: str | None = None  # directory of the finished cells' files (default: <workdir>/cells)
     policy: PolicyPreset = POLICY_PRESETS["cpu"]  # architecture and training budget of every variant
@@ -121,6 +124,8 @@ class SuccessBenchConfig:
     def __post_init__(self) -> None:
         if self.pool is not None and self.pool < self.demos:
             raise ValueError(f"a pool of {self.pool} demonstrations cannot give cells {self.demos}")
+        if self.action_draws < 1:
+            raise ValueError(f"action_draws must be at least 1, not {self.action_draws}")
 
 
 # The dense clouds that the 128x128x32 world model reads (and the Table IV benches used).
@@ -255,7 +260,8 @@ def _train_config(
         policy=dataclasses.replace(preset.policy, algo=algo),
         world_model=str(world_model) if uses_imagination(algo) else None, teacher=str(teacher) if teacher else None,
         eval_every=evaluation_interval(preset.steps, config.evaluations), eval_episodes=config.eval_episodes,
-        eval_layouts=config.eval_layouts, eval_workers=workers, seed=seed, threads=config.threads, demos=config.demos,
+        eval_layouts=config.eval_layouts, eval_workers=workers, eval_action_draws=config.action_draws, seed=seed,
+        threads=config.threads, demos=config.demos,
         device=device or config.device, progress=config.ray_address is None,  # a Ray worker's bars go to a log
     )
 
@@ -283,7 +289,8 @@ def run_cell(
     train_seconds = time.perf_counter() - started
     if config.final_episodes:
         final = evaluate_checkpoint(Path(train.out) / CHECKPOINT_NAME, task, config.final_episodes, config.final_seed,
-                                    workers=workers, end_on_success=True, progress=train.progress)
+                                    workers=workers, end_on_success=True, progress=train.progress,
+                                    acting=Acting(action_draws=config.action_draws))
         wins, episodes = sum(final.successes), final.episodes
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes
@@ -298,8 +305,9 @@ def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> s
     workdir (its data and world models) without one being read back as another."""
     fresh = "_fresh" if config.eval_layouts == "fresh" else ""
     rollouts = _rollouts_tag(config) if uses_imagination(algo) else ""
-    return (f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_demos_tag(config)}{_dart_tag(config)}{rollouts}"
-            f"{_preset_tag(config.policy)}")
+    draws = f"_draws{config.action_draws}" if config.action_draws > 1 else ""
+    return (f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_demos_tag(config)}{_dart_tag(config)}{draws}"
+            f"{rollouts}{_preset_tag(config.policy)}")
 
 
 def _rollouts_tag(config: SuccessBenchConfig) -> str:

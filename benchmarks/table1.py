@@ -1,9 +1,12 @@
 """The paper's Table I on this toolkit (``d2a bench table1``): the 34 Meta-World tasks by
-difficulty group, every method, both protocols, one resumable command.
+difficulty group and the three Adroit tasks, every method, both protocols, one resumable command.
 
 The grid is ``d2a bench success``'s cells (same data, training, evaluation and workdir layout),
-ordered where the paper claims most first: group by group (Very Hard, Hard, Medium, Easy), in a
-group seed by seed, so that a grid cut short has whole seeds of whole groups. Finished cells are
+ordered where the paper claims most first: group by group (Very Hard, Hard, Medium, Easy, then
+Adroit), in a group seed by seed, so that a grid cut short has whole seeds of whole groups. The
+Adroit cells have settings of their own (:func:`adroit_cells`): a policy imitates Adroit's
+controllers only from DART demonstrations, acting on the mean of several draws
+(docs/environments.md). Finished cells are
 written to ``<results>/cells`` (small JSON files, meant to be kept under version control), so a
 rerun in a fresh checkout skips them; data, world models and checkpoints stay in the workdir.
 Two processes running the same command share the grid (each claims the next free cell).
@@ -23,6 +26,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,9 +49,19 @@ from d2a_agents.policy.agent import ALGORITHMS
 from d2a_agents.policy.train import POLICY_PRESETS
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
 
-GROUPS = ("very_hard", "hard", "medium", "easy")  # the grid's order: where the paper claims most first
+GROUPS = ("very_hard", "hard", "medium", "easy")  # Meta-World's, the grid's order: where the paper claims most first
 GROUP_TITLES = {"easy": "Easy", "medium": "Medium", "hard": "Hard", "very_hard": "Very Hard"}
+ADROIT = "adroit"  # the group of the Adroit columns (one column per task), run after Meta-World's
 ADROIT_COLUMNS = ("adroit-hammer", "adroit-door", "adroit-pen")
+
+# The Adroit cells' own settings, those at which policies first imitated the controllers
+# (docs/environments.md): demonstrations collected with the DART noise each controller
+# tolerates (Pen has only its planner: plain demonstrations), 512-point clouds from 84-pixel
+# depth, policies reading 256 of them, every evaluation on the mean of 8 draws per chunk.
+ADROIT_DART_NOISE = {"adroit-hammer": 0.1, "adroit-door": 0.05, "adroit-pen": 0.0}
+ADROIT_CLOUDS: dict[str, object] = {"num_points": 512, "image_size": 84}
+ADROIT_POLICY_POINTS = 256
+ADROIT_ACTION_DRAWS = 8
 
 # The paper's Table I (success %, mean over each group's tasks; Adroit per task).
 PAPER_TABLE1: dict[str, dict[str, float]] = {
@@ -64,13 +78,12 @@ PAPER_TABLE1: dict[str, dict[str, float]] = {
     "d2a": {"easy": 93.4, "medium": 74.7, "hard": 65.0, "very_hard": 74.2,
             "adroit-hammer": 100, "adroit-door": 74, "adroit-pen": 63},
 }
-# Why the Adroit columns are empty: the issue that fills them.
-ADROIT_PENDING = ("Adroit columns empty: policies barely learn from the Adroit experts' demonstrations (the "
-                  "planners': 1-16 %; the controllers': mp1-state 1 % Door, 8 % Hammer); with DART noise and the "
-                  "mean of 8 draws per chunk mp1-state reaches 61 % on Door and 59 % on Hammer, the cloud policy "
-                  "mp1 44.5 % on Door and 55.5 % on Hammer (256 points, 2 seeds each); they join once a policy can imitate them "
-                  "(docs/environments.md).")
-
+ADROIT_NOTE = (f"Adroit columns: per task, mean ± std over seeds (honest: with the pooled 95 % Wilson interval); "
+               f"10 demonstrations collected with DART noise (Hammer {ADROIT_DART_NOISE['adroit-hammer']}, Door "
+               f"{ADROIT_DART_NOISE['adroit-door']}; Pen: its planner's, no noise), clouds "
+               f"{ADROIT_CLOUDS['num_points']} points from {ADROIT_CLOUDS['image_size']}-pixel depth, policies reading "
+               f"{ADROIT_POLICY_POINTS}, every evaluation on the mean of {ADROIT_ACTION_DRAWS} draws per chunk "
+               "(docs/environments.md).")
 
 
 @dataclass(frozen=True)
@@ -78,25 +91,40 @@ class Table1Config:
     """What ``d2a bench table1`` runs; ``bench`` holds every per-cell setting (policy preset,
     evaluations, env options, world model), its ``tasks`` / ``algos`` / ``seeds`` are unused."""
 
-    groups: tuple[str, ...] = GROUPS
+    groups: tuple[str, ...] = (*GROUPS, ADROIT)
     algos: tuple[str, ...] = ("mp1", "dp3")
     seeds: tuple[int, ...] = (0, 1, 2)
     results: str = "docs/table1"  # cells/ (kept), table1.md, tasks.csv, tasks.md, table1.png
     bench: SuccessBenchConfig = paper_table_cells("outputs/table1")
 
     def __post_init__(self) -> None:
-        unknown = set(self.groups) - set(GROUPS)
+        unknown = set(self.groups) - {*GROUPS, ADROIT}
         if unknown:
-            raise ValueError(f"unknown group(s) {sorted(unknown)}; choose from {GROUPS}")
+            raise ValueError(f"unknown group(s) {sorted(unknown)}; choose from {(*GROUPS, ADROIT)}")
 
     def cell_config(self) -> SuccessBenchConfig:
-        """The success bench's config of every cell, its cells kept in ``results``."""
+        """The success bench's config of every Meta-World cell, its cells kept in ``results``."""
         return dataclasses.replace(self.bench, algos=self.algos, seeds=self.seeds,
                                    cells=str(Path(self.results) / "cells"))
 
+    def task_cell_config(self, task: str) -> SuccessBenchConfig:
+        """The cells' config of ``task``: :meth:`cell_config`, with Adroit's own settings on Adroit."""
+        return adroit_cells(self.cell_config(), task) if task in ADROIT_COLUMNS else self.cell_config()
+
+
+def adroit_cells(bench: SuccessBenchConfig, task: str) -> SuccessBenchConfig:
+    """``bench`` with the Adroit settings for ``task``: its DART noise, the Adroit clouds, the
+    policy's points and the evaluations' draws (the policy preset's budget otherwise kept)."""
+    policy = dataclasses.replace(bench.policy.policy, num_points=ADROIT_POLICY_POINTS)
+    return dataclasses.replace(bench, dart_noise=ADROIT_DART_NOISE[task], env_kwargs=ADROIT_CLOUDS,
+                               policy=dataclasses.replace(bench.policy, policy=policy),
+                               action_draws=ADROIT_ACTION_DRAWS)
+
 
 def group_tasks(group: str) -> list[str]:
-    """The Table I tasks of a difficulty group, in the task table's order."""
+    """The Table I tasks of a difficulty group (or the Adroit columns), in the task table's order."""
+    if group == ADROIT:
+        return list(ADROIT_COLUMNS)
     return [spec.name for spec in d2a_envs.list_tasks(suite="metaworld", difficulty=group, table1=True)]
 
 
@@ -192,12 +220,27 @@ def report(cells: list[Cell], config: Table1Config) -> str:
     for algo in algos:
         for protocol in ("paper", "honest"):
             entries = [_group_entry(rows.get((group, algo)), protocol) for group in GROUPS[::-1]]
-            lines.append(f"| `{algo}` | {protocol} | " + " | ".join(entries + ["-"] * len(ADROIT_COLUMNS)) + " |")
+            entries += [_adroit_entry([cell for cell in cells if (cell.task, cell.algo) == (task, algo)], protocol)
+                        for task in ADROIT_COLUMNS]
+            lines.append(f"| `{algo}` | {protocol} | " + " | ".join(entries) + " |")
     for method, values in PAPER_TABLE1.items():
         entries = [f"{values[key]:g}" for key in (*GROUPS[::-1], *ADROIT_COLUMNS)]
         lines.append(f"| {method} (paper) | paper | " + " | ".join(entries) + " |")
-    lines += ["", ADROIT_PENDING]
+    lines += ["", ADROIT_NOTE]
     return "\n".join(lines)
+
+
+def _adroit_entry(runs: list[Cell], protocol: str) -> str:
+    """One Adroit task's entry: mean ± std over its seeds, the honest one with the pooled interval."""
+    if not runs:
+        return "-"
+    values = tuple(cell.paper if protocol == "paper" else cell.honest for cell in runs)
+    interval = ""
+    if protocol == "honest":
+        wins, episodes = sum(c.final_wins for c in runs), sum(c.final_episodes for c in runs)
+        _, low, high = honest_protocol([True] * wins + [False] * (episodes - wins))
+        interval = f" [{100 * low:.0f}-{100 * high:.0f}]"
+    return f"{_mean_std(values)}{interval} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
 
 
 def _preset_name(bench: SuccessBenchConfig) -> str:
@@ -209,8 +252,8 @@ def _env_text(env_kwargs: dict[str, object]) -> str:
 
 
 def task_csv(cells: list[Cell]) -> str:
-    """One row per cell, with its task's difficulty group."""
-    group_of = {task: group for group in GROUPS for task in group_tasks(group)}
+    """One row per cell, with its task's difficulty group (``adroit`` for the Adroit columns)."""
+    group_of = {task: group for group in (*GROUPS, ADROIT) for task in group_tasks(group)}
     return cells_csv(cells, {"group": lambda cell: group_of.get(cell.task, "-")})
 
 
@@ -220,7 +263,7 @@ def task_table(cells: list[Cell]) -> str:
     algos = list(dict.fromkeys(algo for _, algo in summaries))
     lines = ["| group | task | " + " | ".join(f"`{algo}`" for algo in algos) + " |",
              "| --- | --- | " + " | ".join("---" for _ in algos) + " |"]
-    for group in GROUPS:
+    for group in (*GROUPS, ADROIT):
         for task in group_tasks(group):
             entries = []
             for algo in algos:
@@ -230,7 +273,7 @@ def task_table(cells: list[Cell]) -> str:
                     f"{100 * row.paper:.0f} / {100 * row.honest:.0f} [{100 * row.low:.0f}-{100 * row.high:.0f}]"
                     f" ({seeds})"))
             if any(entry != "-" for entry in entries):
-                lines.append(f"| {GROUP_TITLES[group]} | {task} | " + " | ".join(entries) + " |")
+                lines.append(f"| {GROUP_TITLES.get(group, 'Adroit')} | {task} | " + " | ".join(entries) + " |")
     return "\n".join(lines)
 
 
@@ -263,10 +306,11 @@ def finished_cells(config: Table1Config, max_seed: int = 10) -> list[Cell]:
     """Every Table I cell already in ``results/cells`` at this config's per-cell settings, of any
     group, method and seed below ``max_seed``, in the grid's order: a run of one group or method
     reports the others' finished cells too."""
-    bench = config.cell_config()
-    everything = dataclasses.replace(config, groups=GROUPS, algos=tuple(dict.fromkeys((*config.algos, *ALGORITHMS))),
+    everything = dataclasses.replace(config, groups=(*GROUPS, ADROIT),
+                                     algos=tuple(dict.fromkeys((*config.algos, *ALGORITHMS))),
                                      seeds=tuple(dict.fromkeys((*config.seeds, *range(max_seed)))))
-    return [read_cell(path) for key in plan(everything) if (path := cell_path(bench, *key)).exists()]
+    return [read_cell(path) for key in plan(everything)
+            if (path := cell_path(config.task_cell_config(key[0]), *key)).exists()]
 
 
 def run(config: Table1Config = Table1Config(), report_only: bool = False) -> list[Cell]:
@@ -275,7 +319,8 @@ def run(config: Table1Config = Table1Config(), report_only: bool = False) -> lis
     rate; returns the grid's cells."""
     grid = plan(config)
     if not report_only:
-        run_grid(config.cell_config(), grid)
+        for settings, cells in itertools.groupby(grid, key=lambda key: config.task_cell_config(key[0])):
+            run_grid(settings, list(cells))  # Meta-World's cells share one config; each Adroit task has its own
     cells = finished_cells(config)
     print(write_report(cells, config))
     planned = set(grid)

@@ -475,7 +475,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
         eval_layouts=args.eval_layouts, demos=args.demos, pool=args.pool, cells=args.cells,
         wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise, dart_noise=args.dart_noise,
-        rgb_image_size=args.rgb_image_size,
+        action_draws=args.action_draws, rgb_image_size=args.rgb_image_size,
     ))
 
 
@@ -861,6 +861,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench_success.add_argument("--dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
                                help="collect the demonstrations with DART noise (d2a collect --dart-noise); their "
                                     "data, world models and cells are named apart")
+    bench_success.add_argument("--action-draws", type=POSITIVE, default=None, metavar="K",
+                               help="every evaluation acts on the mean of K chunks per plan (d2a eval "
+                                    "--action-draws); cells named apart")
     bench_success.add_argument("--workdir", default=None,
                                help="data, models and finished cells; a rerun resumes")
     bench_success.add_argument("--cells", default=None,
@@ -871,10 +874,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_ray_option(bench_success)
     bench_success.set_defaults(func=cmd_bench_success)
 
-    bench_table1 = bench.add_parser("table1", help="the paper's Table I: Meta-World groups x methods x seeds, "
+    bench_table1 = bench.add_parser("table1", help="the paper's Table I: Meta-World groups and Adroit x methods x seeds, "
                                                    "resumable; per-group table beside the paper's rows, CSV, plot")
-    bench_table1.add_argument("--group", action="append", choices=("very_hard", "hard", "medium", "easy"),
-                              default=None, help="repeat for several (default: very_hard hard medium easy, in order)")
+    bench_table1.add_argument("--group", action="append", choices=("very_hard", "hard", "medium", "easy", "adroit"),
+                              default=None, help="repeat for several (default: very_hard hard medium easy adroit, in "
+                                                 "order; adroit: the three Adroit columns, at their own settings)")
     bench_table1.add_argument("--algo", action="append", choices=ALGOS, default=None, help="default: mp1 dp3")
     _add_grid_options(bench_table1, "docs/table1", "outputs/table1")
     bench_table1.set_defaults(func=cmd_bench_table1)

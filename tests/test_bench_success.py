@@ -102,6 +102,33 @@ def test_dart_cells_train_on_their_own_demonstrations(tmp_path):
     assert bench.cell_path(config, "reach", "mp1", 0).name.startswith("reach_mp1_s0_e1_d1_dart0.05_")
 
 
+def test_cells_acting_on_several_draws_evaluate_so_and_are_named_apart(tmp_path, monkeypatch):
+    import d2a_agents.policy.train as training
+
+    env_kwargs = {"image_size": 48, "num_points": 128}
+    policy = PolicyConfig(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
+                          network=VelocityNetConfig(hidden=32, layers=2))
+    config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), demos=1, workdir=str(tmp_path), action_draws=3,
+                                policy=PolicyPreset(policy, steps=2, batch_size=4, learning_rate=1e-3),
+                                evaluations=1, eval_episodes=1, seeds=(0,), final_episodes=1, env_kwargs=env_kwargs)
+    draws = []
+
+    def recording(evaluate):
+        def wrapper(*args, **kwargs):
+            draws.append(kwargs["acting"].action_draws)
+            return evaluate(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(training, "evaluate_checkpoint", recording(training.evaluate_checkpoint))
+    monkeypatch.setattr(bench, "evaluate_checkpoint", recording(bench.evaluate_checkpoint))
+    (cell,) = bench.run(config)
+    assert draws == [3, 3] and cell.final_episodes == 1  # the periodic evaluation, then the final one
+    assert bench.cell_path(config, "reach", "mp1", 0).name.startswith("reach_mp1_s0_e1_d1_draws3_")
+    assert "draws" not in bench._cell_name(dataclasses.replace(config, action_draws=1), "reach", "mp1", 0)
+    with pytest.raises(ValueError, match="action_draws must be at least 1"):
+        dataclasses.replace(config, action_draws=0)
+
+
 def test_a_bench_with_an_image_policy_collects_images_and_evaluates_the_others_without(tmp_path):
     from d2a_agents.policy.checkpoints import eval_env_kwargs
 

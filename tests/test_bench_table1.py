@@ -54,12 +54,48 @@ def test_report_gives_group_means_over_complete_seeds():
     low, high = _wilson(350, 1000)
     assert very_hard == f"35.0 ± 7.1 [{100 * low:.0f}-{100 * high:.0f}] (2 seeds)"
     assert hard == "75.0 over 2/4 tasks" and easy == medium == "-"
-    assert adroit == ["-", "-", "-"]
+    assert adroit == ["-", "-", "-"]  # no Adroit cell yet
     # One periodic evaluation each: the paper protocol equals the honest figure here.
     assert rows["`mp1`", "paper"][3].strip() == "35.0 ± 7.1 (2 seeds)"
     paper_row = [entry.strip() for entry in rows["mp1 (paper)", "paper"]]
     assert paper_row == ["88.2", "68", "58.1", "67.2", "100", "69", "58"]
-    assert "Adroit columns empty" in text
+    assert "Adroit columns: per task" in text
+
+
+def test_the_adroit_columns_run_last_at_their_own_settings():
+    config = Table1Config(algos=("mp1",), seeds=(0,))
+    grid = plan(config)
+    assert [task for task, _, _ in grid[-3:]] == ["adroit-hammer", "adroit-door", "adroit-pen"]
+    assert plan(Table1Config(groups=("adroit",), algos=("mp1", "dp3"), seeds=(0, 1)))[:2] == [
+        ("adroit-hammer", "mp1", 0), ("adroit-hammer", "dp3", 0)]
+    door, hammer, push = (config.task_cell_config(task) for task in ("adroit-door", "adroit-hammer", "push"))
+    assert (door.dart_noise, hammer.dart_noise, push.dart_noise) == (0.05, 0.1, 0.0)
+    assert door.env_kwargs == {"num_points": 512, "image_size": 84} and push.env_kwargs == config.bench.env_kwargs
+    assert (door.policy.policy.num_points, door.action_draws, push.action_draws) == (256, 8, 1)
+    assert door.policy.steps == push.policy.steps and door.cells == push.cells  # the budget and the cells' place
+    assert success.cell_path(door, "adroit-door", "mp1", 0).name == (
+        "adroit-door_mp1_s0_e5_fresh_dart0.05_draws8_num_points256.json")
+    with pytest.raises(ValueError, match="unknown group"):
+        Table1Config(groups=("adroit", "pen"))
+
+
+def test_adroit_entries_are_per_task_means_over_seeds(tmp_path, capsys):
+    config = Table1Config(groups=("adroit",), algos=("mp1",), seeds=(0, 1), results=str(tmp_path))
+    for seed, wins in ((0, 40), (1, 50)):
+        success._store(config.task_cell_config("adroit-door"), _cell("adroit-door", "mp1", seed, wins))
+    success._store(config.task_cell_config("adroit-hammer"), _cell("adroit-hammer", "mp1", 0, 70))
+    success._store(config.cell_config(), _cell("adroit-pen", "mp1", 0, 99))  # Meta-World's settings: not a Pen cell
+    main(["bench", "table1", "--group", "adroit", "--algo", "mp1", "--results", str(tmp_path), "--report"])
+    text = (tmp_path / "table1.md").read_text()
+    honest = next(line for line in text.splitlines() if line.startswith("| `mp1` | honest"))
+    *_, hammer, door, pen = (entry.strip() for entry in honest.split("|")[1:-1])
+    low, high = _wilson(90, 200)
+    assert door == f"45.0 ± 7.1 [{100 * low:.0f}-{100 * high:.0f}] (2 seeds)"
+    low, high = _wilson(70, 100)
+    assert hammer == f"70.0 ± 0.0 [{100 * low:.0f}-{100 * high:.0f}] (1 seed)" and pen == "-"
+    assert "3 of 9 cells finished" in capsys.readouterr().out  # 3 tasks x 3 seeds (the default)
+    rows = list(csv.DictReader(io.StringIO((tmp_path / "tasks.csv").read_text())))
+    assert {row["group"] for row in rows} == {"adroit"} and len(rows) == 3
 
 
 def test_task_csv_has_one_row_per_cell():

@@ -39,6 +39,7 @@ from d2a_agents.policy.agent import (
 )
 from d2a_agents.policy.checkpoints import (
     CHECKPOINT_KIND,
+    Acting,
     CHECKPOINT_NAME,
     evaluate_checkpoint,
     imaginer_tasks,
@@ -54,7 +55,7 @@ from d2a_envs.wrappers import IMAGE_KEY
 # TrainPolicyConfig fields a resumed run may change (how long, how often, where it runs);
 # every other field must match the checkpoint's, or the resume would mix two runs.
 RESUMABLE_CHANGES = ("out", "steps", "eval_every", "eval_episodes", "eval_workers", "eval_end_on_success",
-                     "checkpoint_every", "device", "threads", "logger", "progress")
+                     "eval_action_draws", "checkpoint_every", "device", "threads", "logger", "progress")
 # Per-step training figures kept in the checkpoint (``metrics``): the unweighted MSE and, with
 # adaptive CFG, the batch means of the gate w and of rho (eq. 7) and the fraction of the batch
 # whose target the gate changes (w < 1), to see what the gate does.
@@ -138,6 +139,7 @@ class TrainPolicyConfig:
     eval_episodes: int = 20  # 0: no evaluation at all
     eval_workers: int = 1
     eval_end_on_success: bool = True  # evaluations count successes only: end episodes there (same verdicts, faster)
+    eval_action_draws: int = 1  # the evaluations act on the mean of this many chunks per plan (Acting.action_draws)
     # "fixed": every periodic evaluation plays the same layouts (env seeds 10000 on), so two
     # evaluations differ only by their checkpoints; "fresh": each one plays the next
     # eval_episodes layouts, as DP3's and MP1's runners do (their env draws a new layout at every
@@ -159,7 +161,7 @@ class TrainPolicyConfig:
         return cls(**{**preset.training_fields(fields.get("policy")), **fields})
 
     def __post_init__(self) -> None:
-        for name in ("steps", "batch_size", "checkpoint_every", "reliance_windows"):
+        for name in ("steps", "batch_size", "checkpoint_every", "reliance_windows", "eval_action_draws"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, not {getattr(self, name)}")
         if self.demos is not None and self.demos < 1:
@@ -484,7 +486,8 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
             seed = evaluation_seed(config.eval_layouts, sum(point.task == task for point in history),
                                    config.eval_episodes)
             result = evaluate_checkpoint(path, task, config.eval_episodes, seed=seed, workers=config.eval_workers,
-                                         progress=False, end_on_success=config.eval_end_on_success)
+                                         progress=False, end_on_success=config.eval_end_on_success,
+                                         acting=Acting(action_draws=config.eval_action_draws))
             history.append(EvaluationPoint(step, result.success_rate, result.episodes, task))
             log({f"success/{task}": result.success_rate}, step)
             bar.write(f"step {step}: {task} success {result.success_rate:.0%} over {result.episodes} episodes")
