@@ -74,13 +74,18 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
         bench.run(other_clouds)
 
 
-def test_a_cp_cell_trains_its_edm_teacher_first_and_the_edm_cell_finds_it_done(tmp_path):
-    env_kwargs = {"image_size": 48, "num_points": 128}
+def _tiny_bench(tmp_path, **fields) -> SuccessBenchConfig:
+    """One reach cell of a 2-step policy on one demonstration, small clouds, one evaluation episode."""
     policy = PolicyConfig(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
                           network=VelocityNetConfig(hidden=32, layers=2))
-    config = SuccessBenchConfig(tasks=("reach",), algos=("cp",), demos=1, workdir=str(tmp_path),
-                                policy=PolicyPreset(policy, steps=2, batch_size=4, learning_rate=1e-3),
-                                evaluations=1, eval_episodes=1, seeds=(0,), final_episodes=0, env_kwargs=env_kwargs)
+    settings = dict(tasks=("reach",), algos=("mp1",), demos=1, workdir=str(tmp_path),
+                    policy=PolicyPreset(policy, steps=2, batch_size=4, learning_rate=1e-3), evaluations=1,
+                    eval_episodes=1, seeds=(0,), final_episodes=0, env_kwargs={"image_size": 48, "num_points": 128})
+    return SuccessBenchConfig(**{**settings, **fields})
+
+
+def test_a_cp_cell_trains_its_edm_teacher_first_and_the_edm_cell_finds_it_done(tmp_path):
+    config = _tiny_bench(tmp_path, algos=("cp",))
     (cell,) = bench.run(config)
     teacher = tmp_path / "runs" / bench._cell_name(config, "reach", "edm", 0) / "policy.pt"
     student = load_checkpoint(tmp_path / "runs" / bench._cell_name(config, "reach", "cp", 0) / "policy.pt", "policy")
@@ -90,12 +95,7 @@ def test_a_cp_cell_trains_its_edm_teacher_first_and_the_edm_cell_finds_it_done(t
 
 
 def test_dart_cells_train_on_their_own_demonstrations(tmp_path):
-    env_kwargs = {"image_size": 48, "num_points": 128}
-    policy = PolicyConfig(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
-                          network=VelocityNetConfig(hidden=32, layers=2))
-    config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), demos=1, workdir=str(tmp_path), dart_noise=0.05,
-                                policy=PolicyPreset(policy, steps=2, batch_size=4, learning_rate=1e-3),
-                                evaluations=1, eval_episodes=1, seeds=(0,), final_episodes=0, env_kwargs=env_kwargs)
+    config = _tiny_bench(tmp_path, dart_noise=0.05)
     bench.run(config)
     assert DemoDataset.open(tmp_path / "data" / "reach_dart0.05").metadata.collections[0].dart_noise == 0.05
     assert not (tmp_path / "data" / "reach").exists()
@@ -105,12 +105,7 @@ def test_dart_cells_train_on_their_own_demonstrations(tmp_path):
 def test_cells_acting_on_several_draws_evaluate_so_and_are_named_apart(tmp_path, monkeypatch):
     import d2a_agents.policy.train as training
 
-    env_kwargs = {"image_size": 48, "num_points": 128}
-    policy = PolicyConfig(num_points=64, encoder=EncoderConfig(point_widths=(16, 32)),
-                          network=VelocityNetConfig(hidden=32, layers=2))
-    config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), demos=1, workdir=str(tmp_path), action_draws=3,
-                                policy=PolicyPreset(policy, steps=2, batch_size=4, learning_rate=1e-3),
-                                evaluations=1, eval_episodes=1, seeds=(0,), final_episodes=1, env_kwargs=env_kwargs)
+    config = _tiny_bench(tmp_path, action_draws=3, final_episodes=1)
     draws = []
 
     def recording(evaluate):
