@@ -278,16 +278,20 @@ def task_table(cells: list[Cell]) -> str:
 
 
 def plot(cells: list[Cell], path: str | Path) -> Path:
-    """Bars per group and method: honest group mean over complete seeds (pooled 95 % interval,
-    seeds as dots), the paper's Table I value for that method as a triangle."""
+    """Bars per group (and Adroit task) and method: honest mean over complete seeds (pooled 95 %
+    interval, seeds as dots), the paper's Table I value for that method as a triangle."""
     bars: dict[str, dict[str, SuccessBar]] = {}
     for (group, algo), row in group_rows(cells).items():
         if row.seeds:
             bars.setdefault(algo, {})[GROUP_TITLES[group]] = SuccessBar(
                 statistics.fmean(row.honest_by_seed), row.low, row.high, row.honest_by_seed,
                 marker=PAPER_TABLE1[algo][group] / 100 if algo in PAPER_TABLE1 else None)
-    return plot_success_bars(bars, path, "Table I groups, honest protocol: mean over tasks (bars, pooled 95 % "
-                                         "interval; dots: seeds); triangles: the paper's value for the method")
+    for (task, algo), summary in summarize([cell for cell in cells if cell.task in ADROIT_COLUMNS]).items():
+        bars.setdefault(algo, {})["Adroit " + task.split("-")[1].title()] = SuccessBar(
+            statistics.fmean(summary.seeds), summary.low, summary.high, summary.seeds,
+            marker=PAPER_TABLE1[algo][task] / 100 if algo in PAPER_TABLE1 else None)
+    return plot_success_bars(bars, path, "Table I, honest protocol: group means over tasks, Adroit per task (bars, "
+                                         "pooled 95 % interval; dots: seeds); triangles: the paper's value")
 
 
 def write_report(cells: list[Cell], config: Table1Config) -> str:
@@ -297,7 +301,7 @@ def write_report(cells: list[Cell], config: Table1Config) -> str:
     atomic_write_text(results / "table1.md", text + "\n")
     atomic_write_text(results / "tasks.csv", task_csv(cells))
     atomic_write_text(results / "tasks.md", task_table(cells) + "\n")
-    if group_rows(cells) and any(row.seeds for row in group_rows(cells).values()):
+    if any(row.seeds for row in group_rows(cells).values()) or any(cell.task in ADROIT_COLUMNS for cell in cells):
         plot(cells, results / "table1.png")
     return text
 

@@ -96,6 +96,7 @@ def test_adroit_entries_are_per_task_means_over_seeds(tmp_path, capsys):
     assert "3 of 9 cells finished" in capsys.readouterr().out  # 3 tasks x 3 seeds (the default)
     rows = list(csv.DictReader(io.StringIO((tmp_path / "tasks.csv").read_text())))
     assert {row["group"] for row in rows} == {"adroit"} and len(rows) == 3
+    assert (tmp_path / "table1.png").stat().st_size > 0  # Adroit cells alone are plotted
 
 
 def test_task_csv_has_one_row_per_cell():
