@@ -6,10 +6,10 @@ ordered where the paper claims most first: group by group (Very Hard, Hard, Medi
 Adroit), in a group seed by seed, so that a grid cut short has whole seeds of whole groups. The
 Adroit cells have settings of their own (:func:`adroit_cells`): a policy imitates Adroit's
 controllers only from DART demonstrations, acting on the mean of several draws
-(docs/environments.md). Finished cells are
-written to ``<results>/cells`` (small JSON files, meant to be kept under version control), so a
-rerun in a fresh checkout skips them; data, world models and checkpoints stay in the workdir.
-Two processes running the same command share the grid (each claims the next free cell).
+(docs/environments.md). Finished cells are written to ``<results>/cells`` (small JSON files,
+meant to be kept under version control), so a rerun in a fresh checkout skips them; data,
+world models and checkpoints stay in the workdir. Two processes running the same command share
+the grid (each claims the next free cell).
 
 The report (``report``) gives per group and method the mean over the group's tasks for each
 seed that has every task, then mean and standard deviation over those seeds, for the paper
