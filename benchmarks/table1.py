@@ -50,8 +50,9 @@ from d2a_agents.policy.train import POLICY_PRESETS
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
 
 GROUPS = ("very_hard", "hard", "medium", "easy")  # Meta-World's, the grid's order: where the paper claims most first
-GROUP_TITLES = {"easy": "Easy", "medium": "Medium", "hard": "Hard", "very_hard": "Very Hard"}
 ADROIT = "adroit"  # the group of the Adroit columns (one column per task), run after Meta-World's
+TABLE1_GROUPS = (*GROUPS, ADROIT)
+GROUP_TITLES = {"easy": "Easy", "medium": "Medium", "hard": "Hard", "very_hard": "Very Hard", ADROIT: "Adroit"}
 ADROIT_COLUMNS = ("adroit-hammer", "adroit-door", "adroit-pen")
 
 # The Adroit cells' own settings, those at which policies first imitated the controllers
@@ -91,16 +92,16 @@ class Table1Config:
     """What ``d2a bench table1`` runs; ``bench`` holds every per-cell setting (policy preset,
     evaluations, env options, world model), its ``tasks`` / ``algos`` / ``seeds`` are unused."""
 
-    groups: tuple[str, ...] = (*GROUPS, ADROIT)
+    groups: tuple[str, ...] = TABLE1_GROUPS
     algos: tuple[str, ...] = ("mp1", "dp3")
     seeds: tuple[int, ...] = (0, 1, 2)
     results: str = "docs/table1"  # cells/ (kept), table1.md, tasks.csv, tasks.md, table1.png
     bench: SuccessBenchConfig = paper_table_cells("outputs/table1")
 
     def __post_init__(self) -> None:
-        unknown = set(self.groups) - {*GROUPS, ADROIT}
+        unknown = set(self.groups) - set(TABLE1_GROUPS)
         if unknown:
-            raise ValueError(f"unknown group(s) {sorted(unknown)}; choose from {(*GROUPS, ADROIT)}")
+            raise ValueError(f"unknown group(s) {sorted(unknown)}; choose from {TABLE1_GROUPS}")
 
     def cell_config(self) -> SuccessBenchConfig:
         """The success bench's config of every Meta-World cell, its cells kept in ``results``."""
@@ -202,7 +203,7 @@ def report(cells: list[Cell], config: Table1Config) -> str:
     rows = group_rows(cells)
     algos = list(dict.fromkeys([*config.algos, *(cell.algo for cell in cells)]))  # stable rows, then any other
     header = ([GROUP_TITLES[group] for group in GROUPS[::-1]]
-              + ["Adroit " + task.split("-")[1].title() for task in ADROIT_COLUMNS])
+              + [_adroit_title(task) for task in ADROIT_COLUMNS])
     bench = config.cell_config()
     lines = [
         f"Success (%), Meta-World groups of the paper's Table I; {bench.demos} demonstrations per task, the "
@@ -230,6 +231,11 @@ def report(cells: list[Cell], config: Table1Config) -> str:
     return "\n".join(lines)
 
 
+def _adroit_title(task: str) -> str:
+    """An Adroit column's title: ``adroit-door`` -> ``Adroit Door``."""
+    return "Adroit " + task.split("-")[1].title()
+
+
 def _adroit_entry(runs: list[Cell], protocol: str) -> str:
     """One Adroit task's entry: mean ± std over its seeds, the honest one with the pooled interval."""
     if not runs:
@@ -237,9 +243,8 @@ def _adroit_entry(runs: list[Cell], protocol: str) -> str:
     values = tuple(cell.paper if protocol == "paper" else cell.honest for cell in runs)
     interval = ""
     if protocol == "honest":
-        wins, episodes = sum(c.final_wins for c in runs), sum(c.final_episodes for c in runs)
-        _, low, high = honest_protocol([True] * wins + [False] * (episodes - wins))
-        interval = f" [{100 * low:.0f}-{100 * high:.0f}]"
+        (pooled,) = summarize(runs).values()
+        interval = f" [{100 * pooled.low:.0f}-{100 * pooled.high:.0f}]"
     return f"{_mean_std(values)}{interval} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
 
 
@@ -253,7 +258,7 @@ def _env_text(env_kwargs: dict[str, object]) -> str:
 
 def task_csv(cells: list[Cell]) -> str:
     """One row per cell, with its task's difficulty group (``adroit`` for the Adroit columns)."""
-    group_of = {task: group for group in (*GROUPS, ADROIT) for task in group_tasks(group)}
+    group_of = {task: group for group in TABLE1_GROUPS for task in group_tasks(group)}
     return cells_csv(cells, {"group": lambda cell: group_of.get(cell.task, "-")})
 
 
@@ -263,7 +268,7 @@ def task_table(cells: list[Cell]) -> str:
     algos = list(dict.fromkeys(algo for _, algo in summaries))
     lines = ["| group | task | " + " | ".join(f"`{algo}`" for algo in algos) + " |",
              "| --- | --- | " + " | ".join("---" for _ in algos) + " |"]
-    for group in (*GROUPS, ADROIT):
+    for group in TABLE1_GROUPS:
         for task in group_tasks(group):
             entries = []
             for algo in algos:
@@ -273,7 +278,7 @@ def task_table(cells: list[Cell]) -> str:
                     f"{100 * row.paper:.0f} / {100 * row.honest:.0f} [{100 * row.low:.0f}-{100 * row.high:.0f}]"
                     f" ({seeds})"))
             if any(entry != "-" for entry in entries):
-                lines.append(f"| {GROUP_TITLES.get(group, 'Adroit')} | {task} | " + " | ".join(entries) + " |")
+                lines.append(f"| {GROUP_TITLES[group]} | {task} | " + " | ".join(entries) + " |")
     return "\n".join(lines)
 
 
@@ -287,7 +292,7 @@ def plot(cells: list[Cell], path: str | Path) -> Path:
                 statistics.fmean(row.honest_by_seed), row.low, row.high, row.honest_by_seed,
                 marker=PAPER_TABLE1[algo][group] / 100 if algo in PAPER_TABLE1 else None)
     for (task, algo), summary in summarize([cell for cell in cells if cell.task in ADROIT_COLUMNS]).items():
-        bars.setdefault(algo, {})["Adroit " + task.split("-")[1].title()] = SuccessBar(
+        bars.setdefault(algo, {})[_adroit_title(task)] = SuccessBar(
             statistics.fmean(summary.seeds), summary.low, summary.high, summary.seeds,
             marker=PAPER_TABLE1[algo][task] / 100 if algo in PAPER_TABLE1 else None)
     return plot_success_bars(bars, path, "Table I, honest protocol: group means over tasks, Adroit per task (bars, "
@@ -310,11 +315,11 @@ def finished_cells(config: Table1Config, max_seed: int = 10) -> list[Cell]:
     """Every Table I cell already in ``results/cells`` at this config's per-cell settings, of any
     group, method and seed below ``max_seed``, in the grid's order: a run of one group or method
     reports the others' finished cells too."""
-    everything = dataclasses.replace(config, groups=(*GROUPS, ADROIT),
+    everything = dataclasses.replace(config, groups=TABLE1_GROUPS,
                                      algos=tuple(dict.fromkeys((*config.algos, *ALGORITHMS))),
                                      seeds=tuple(dict.fromkeys((*config.seeds, *range(max_seed)))))
-    return [read_cell(path) for key in plan(everything)
-            if (path := cell_path(config.task_cell_config(key[0]), *key)).exists()]
+    settings = {task: config.task_cell_config(task) for group in TABLE1_GROUPS for task in group_tasks(group)}
+    return [read_cell(path) for key in plan(everything) if (path := cell_path(settings[key[0]], *key)).exists()]
 
 
 def run(config: Table1Config = Table1Config(), report_only: bool = False) -> list[Cell]:
