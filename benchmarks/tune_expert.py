@@ -5,11 +5,12 @@ of their range, clipped to it) and keeps the perturbation when it succeeds in mo
 tuning episodes, or in as many but sooner. The episodes run on the bare simulator (no point
 clouds) through the expert's own path (the physics vector into a replica, the controller
 there), on layouts ``first_seed ..``, apart from the demonstrations' (0 ..) and the
-evaluations'. With ``noise``, every tuning episode executes the controller's action plus Gaussian
-noise of that std (as ``d2a collect --dart-noise`` does), drawn from the layout's seed so that
-every candidate meets the same draws: the search then maximises the noise the controller
-tolerates, which bounds the recovery its DART demonstrations can show. Prints the best settings as the config's constructor call, to paste into
-:mod:`collectors.adroit_controllers`, and the time the search took.
+evaluations'. With ``noise``, every tuning episode executes the controller's action plus
+Gaussian noise of that std, the draws ``d2a collect --dart-noise`` makes on that layout, so that
+every candidate meets the same ones: the search then maximises the noise the controller
+tolerates, which bounds the recovery its DART demonstrations can show. Prints the best settings
+as the config's constructor call, to paste into :mod:`collectors.adroit_controllers`, and the
+time the search took.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from tqdm import tqdm
 
 import d2a_envs
 from collectors.adroit_controllers import CONTROLLERS, ControllerReplica
+from collectors.experts import step_noise
 from d2a_envs.suites.adroit import AdroitEnv
 
 # The range each setting is searched in.
@@ -81,18 +83,17 @@ class TuneConfig:
 def first_successes(task: str, settings: object, seeds: range, max_steps: int,
                     noise: float = 0.0) -> list[int | None]:
     """The step of each episode's first success (None: none within ``max_steps``), the executed
-    actions perturbed by Gaussian noise of std ``noise`` drawn from the episode's seed."""
+    actions perturbed by Gaussian noise of std ``noise`` (:func:`step_noise` of the episode's seed)."""
     env = AdroitEnv(task, state_obs=False, physics_obs=True)
     replica = ControllerReplica(task, settings)
     outcomes: list[int | None] = []
     for seed in seeds:
         observation, _ = env.reset(seed=seed)
-        rng = np.random.default_rng(seed)
         first = None
         for step in range(max_steps):
             action = replica.act(observation["physics"])
             if noise:
-                action = np.clip(action + rng.normal(0.0, noise, action.shape), -1.0, 1.0).astype(action.dtype)
+                action = np.clip(action + step_noise(seed, step, noise, action.shape), -1.0, 1.0).astype(action.dtype)
             observation, _, _, _, info = env.step(action)
             if info["success"]:
                 first = step

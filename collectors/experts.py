@@ -49,6 +49,12 @@ class ScriptedExpert(TensorDictModuleBase):
         return tensordict
 
 
+def step_noise(seed: int, step: int, std: float, shape: tuple[int, ...]) -> np.ndarray:
+    """The Gaussian action noise of step ``step`` of the episode of seed ``seed``: a function of
+    the two alone, so a noisy rollout is reproducible and resumes exactly, on any worker."""
+    return np.random.default_rng([seed, step]).normal(0.0, std, size=shape)
+
+
 class ActionNoise(TensorDictModuleBase):
     """Adds Gaussian noise of standard deviation ``std`` to ``action`` (clipped to [-1, 1]).
 
@@ -73,7 +79,7 @@ class ActionNoise(TensorDictModuleBase):
             tensordict.set(EXPERT_ACTION_KEY, action.clone())
         seed = int(tensordict.get("episode_seed").reshape(-1)[0])
         step = int(tensordict.get("step_count").reshape(-1)[0])
-        noise = np.random.default_rng([seed, step]).normal(0.0, self.std, size=tuple(action.shape))
+        noise = step_noise(seed, step, self.std, tuple(action.shape))
         tensordict.set("action", (action + torch.as_tensor(noise, dtype=action.dtype)).clamp(-1.0, 1.0))
         return tensordict
 
