@@ -98,13 +98,16 @@ def _add_acting_options(parser: argparse.ArgumentParser) -> None:
                              "checkpoint's; 1 plans after every action)")
     parser.add_argument("--action-draws", type=POSITIVE, default=1, metavar="K",
                         help="chunks drawn from independent noise per plan, acted on as their mean (default 1)")
+    parser.add_argument("--sample-steps", type=POSITIVE, default=None, metavar="K",
+                        help="network evaluations per drawn chunk (default: the expert's own; one for mp1, "
+                             "d2a, flowpolicy, cp)")
 
 
 def _acting(args: argparse.Namespace) -> Acting:
     """The ``Acting`` that :func:`_add_acting_options` read."""
     from d2a_agents.policy.checkpoints import Acting
 
-    return Acting(args.n_action_steps, args.action_draws)
+    return Acting(args.n_action_steps, args.action_draws, args.sample_steps)
 
 
 def _add_eval_layouts_option(parser: argparse.ArgumentParser) -> None:
@@ -360,9 +363,9 @@ def cmd_eval(args: argparse.Namespace) -> None:
         from collectors.evaluation import evaluate
         from collectors.experts import ExpertSettings, expert_env_kwargs, make_expert
 
-        if args.n_action_steps is not None or args.action_draws != 1:
-            raise ValueError("--n-action-steps and --action-draws apply to a policy checkpoint; the expert acts "
-                             "step by step")
+        if args.n_action_steps is not None or args.action_draws != 1 or args.sample_steps is not None:
+            raise ValueError("--n-action-steps, --action-draws and --sample-steps apply to a policy checkpoint; "
+                             "the expert acts step by step")
         make = functools.partial(make_expert, args.task, ExpertSettings(kind=args.expert))
         make()  # a task without that expert fails here, before any worker starts
         result = evaluate(make, args.task, args.episodes, args.seed,

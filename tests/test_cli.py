@@ -172,11 +172,12 @@ def test_eval_passes_how_to_act_to_a_checkpoint_only(monkeypatch):
         return Result()
 
     monkeypatch.setattr(d2a_agents.policy.checkpoints, "evaluate_checkpoint", evaluate_checkpoint)
-    main(["eval", "--policy", "runs/p", "--task", "push", "--n-action-steps", "1", "--action-draws", "8"])
-    assert (seen["path"], seen["acting"]) == ("runs/p", Acting(n_action_steps=1, action_draws=8))
+    main(["eval", "--policy", "runs/p", "--task", "push", "--n-action-steps", "1", "--action-draws", "8",
+          "--sample-steps", "4"])
+    assert (seen["path"], seen["acting"]) == ("runs/p", Acting(n_action_steps=1, action_draws=8, sample_steps=4))
     main(["eval", "--policy", "runs/p", "--task", "push"])
     assert seen["acting"] == Acting()  # the checkpoint's own chunking, one draw
-    for option in ("--n-action-steps", "--action-draws"):
+    for option in ("--n-action-steps", "--action-draws", "--sample-steps"):
         with pytest.raises(SystemExit, match="expert acts step by step"):
             main(["eval", "--policy", "expert", option, "2"])
     with pytest.raises(SystemExit, match="applies to --policy expert"):
@@ -198,6 +199,7 @@ def test_abbreviated_options_are_refused(captured, capsys):
     (["eval", "--policy", "p.pt", "--n-action-steps", "0"], "argument --n-action-steps: must be at least 1"),
     (["eval", "--policy", "p.pt", "--action-draws", "0"], "argument --action-draws: must be at least 1"),
     (["act", "--policy", "p.pt", "--action-draws", "0"], "argument --action-draws: must be at least 1"),
+    (["eval", "--policy", "p.pt", "--sample-steps", "0"], "argument --sample-steps: must be at least 1"),
     (["bench", "envs", "--steps", "0"], "argument --steps: must be at least 1, got 0"),
     (["train-wm", "--data", "d", "--out", "o", "--batch-size", "0"], "argument --batch-size: must be at least 1"),
     (["train-policy", "--data", "d", "--out", "o", "--policy-points", "0"],

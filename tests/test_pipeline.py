@@ -194,7 +194,7 @@ def test_training_resumes_from_its_checkpoint(reach_data, tmp_path):
     assert not torch.equal(first.net.input.weight, resumed.net.input.weight)
 
 
-def test_a_checkpoint_acts_with_other_actions_per_plan_and_draws_per_chunk(reach_data, tmp_path):
+def test_a_checkpoint_acts_with_other_actions_per_plan_draws_and_sample_steps(reach_data, tmp_path):
     train_policy(dataclasses.replace(policy_config("mp1", reach_data, tmp_path, steps=1), eval_episodes=0))
     stored, _ = load_policy(tmp_path)
     replanning, _ = load_policy(tmp_path, acting=Acting(n_action_steps=1))
@@ -203,6 +203,13 @@ def test_a_checkpoint_acts_with_other_actions_per_plan_and_draws_per_chunk(reach
                                                 strict=True))  # the same network and normalizers
     worker = load_torchrl_policy(tmp_path / CHECKPOINT_NAME, Acting(n_action_steps=1, action_draws=3)).policy
     assert (worker.config.executed_actions, worker.action_draws, stored.action_draws) == (1, 3, 1)  # eval workers
+    stepped, _ = load_policy(tmp_path, acting=Acting(sample_steps=4))
+    window = {key: torch.zeros(1, 2, *shape) for key, shape in (("point_cloud", (8, 3)), ("agent_pos", (4,)))}
+    for policy, evaluations in ((stored, 1), (stepped, 4)):  # one per chunk as trained, four when asked
+        calls = []
+        policy.net.register_forward_hook(lambda *_: calls.append(1))
+        policy.sample_normalized(window)
+        assert len(calls) == evaluations
     result = evaluate_checkpoint(tmp_path, "reach", 1, seed=0, acting=Acting(n_action_steps=1, action_draws=2),
                                  progress=False)
     assert len(result.successes) == 1

@@ -299,6 +299,7 @@ class Policy(nn.Module):
         # Chunks drawn per plan, acted on as their mean (1: one draw, as trained and as the papers
         # act); acting only, set by load_policy. More draws average out the sampler's spread.
         self.action_draws = 1
+        self.sample_steps: int | None = None  # network evaluations per chunk (None: the expert's own)
         self.reset()
 
     def normalize_observation(self, observation: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -337,11 +338,13 @@ class Policy(nn.Module):
         self, observation: dict[str, torch.Tensor], generator: torch.Generator | None = None
     ) -> torch.Tensor:
         """Action chunks (B, horizon, A) in the normalized action space, from a raw window: the
-        mean of ``action_draws`` chunks drawn from independent noise (the encoders run once)."""
+        mean of ``action_draws`` chunks drawn from independent noise (the encoders run once), each
+        in ``sample_steps`` network evaluations."""
         condition = self.condition(observation)
         if self.action_draws == 1:
-            return self.expert.sample(self.net, condition, generator=generator)
-        draws = self.expert.sample(self.net, condition.repeat_interleave(self.action_draws, 0), generator=generator)
+            return self.expert.sample(self.net, condition, generator=generator, steps=self.sample_steps)
+        draws = self.expert.sample(self.net, condition.repeat_interleave(self.action_draws, 0), generator=generator,
+                                   steps=self.sample_steps)
         return draws.unflatten(0, (condition.shape[0], self.action_draws)).mean(1)
 
     @torch.no_grad()

@@ -47,16 +47,22 @@ class Acting:
         action_draws: chunks drawn from independent noise per plan, acted on as their mean (1:
             one draw, as the policy was trained and checked). On Adroit Door a DART-trained
             ``mp1-state`` policy went from 38/100 to 51/100 with 8 (docs/environments.md).
+        sample_steps: network evaluations per drawn chunk (None: the expert's own, one for the
+            one-step experts); a one-step expert given more integrates its flow in smaller jumps,
+            which tells the sampler's share of an imitation error from the network's.
     """
 
     n_action_steps: int | None = None
     action_draws: int = 1
+    sample_steps: int | None = None
 
     def __post_init__(self) -> None:
         if self.n_action_steps is not None and self.n_action_steps < 1:
             raise ValueError(f"n_action_steps must be at least 1, not {self.n_action_steps}")
         if self.action_draws < 1:
             raise ValueError(f"action_draws must be at least 1, not {self.action_draws}")
+        if self.sample_steps is not None and self.sample_steps < 1:
+            raise ValueError(f"sample_steps must be at least 1, not {self.sample_steps}")
 
 
 def load_policy(path: str | Path, ema: bool = True, acting: Acting = Acting()) -> tuple[Policy, dict[str, Any]]:
@@ -79,7 +85,7 @@ def load_policy(path: str | Path, ema: bool = True, acting: Acting = Acting()) -
     except (ValueError, RuntimeError) as error:  # normalizers or weights of an older version
         raise CheckpointError(f"{path} was written by another version of the policy ({error}); "
                               "train the policy again") from error
-    policy.action_draws = acting.action_draws
+    policy.action_draws, policy.sample_steps = acting.action_draws, acting.sample_steps
     return policy.eval(), payload
 
 
