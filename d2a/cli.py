@@ -459,6 +459,13 @@ def cmd_bench_change(args: argparse.Namespace) -> None:
                        stride=args.stride, num_points=args.points))
 
 
+def cmd_bench_wm_fit(args: argparse.Namespace) -> None:
+    from benchmarks.world_model_fit import WorldModelFitConfig, run
+
+    run(_replace_given(WorldModelFitConfig(world_model=args.world_model, data=args.data, demos=args.demos),
+                       stride=args.stride))
+
+
 def cmd_bench_success(args: argparse.Namespace) -> None:
     from benchmarks.success import PRESETS, run
 
@@ -825,6 +832,15 @@ def build_parser() -> argparse.ArgumentParser:
     bench_change.add_argument("--stride", type=POSITIVE, default=None, help="every k-th transition (default 2)")
     bench_change.add_argument("--points", type=POSITIVE, default=None, help="points per cloud (default 64)")
     bench_change.set_defaults(func=cmd_bench_change)
+
+    bench_wm_fit = bench.add_parser("wm-fit", help="a world model on the demonstrations it trained on against new "
+                                                   "ones: is what a d2a policy trains on in-sample?")
+    bench_wm_fit.add_argument("--world-model", required=True, help="checkpoint of d2a train-wm")
+    bench_wm_fit.add_argument("--data", required=True, help="its demonstrations and more of the same task")
+    bench_wm_fit.add_argument("--demos", type=POSITIVE, required=True,
+                              help="the world model trained on the first N of each task")
+    bench_wm_fit.add_argument("--stride", type=POSITIVE, default=None, help="every k-th transition (default 5)")
+    bench_wm_fit.set_defaults(func=cmd_bench_wm_fit)
 
     bench_success = bench.add_parser("success", help="success rates of d2a / d2a-no-cfg / mp1 / dp3, both protocols")
     bench_success.add_argument("--preset", choices=("cpu", "paper"), default="cpu",

@@ -235,6 +235,8 @@ def test_defaults_live_in_the_configs_alone(collect_config):
     (["bench", "train"], "benchmarks.train", "TrainBenchConfig"),
     (["bench", "ablate", "--data", "d", "--task", "hammer"], "benchmarks.ablation", "AblationConfig"),
     (["bench", "ray"], "benchmarks.ray_scaling", "RayScalingConfig"),
+    (["bench", "wm-fit", "--world-model", "w", "--data", "d", "--demos", "5"], "benchmarks.world_model_fit",
+     "WorldModelFitConfig"),
 ])
 def test_bench_defaults_live_in_their_configs(argv, module, config, monkeypatch):
     import importlib
@@ -243,7 +245,8 @@ def test_bench_defaults_live_in_their_configs(argv, module, config, monkeypatch)
     seen = {}
     monkeypatch.setattr(bench, "run", lambda given: seen.setdefault("config", given))
     main(argv)
-    required = {"data": "d", "task": "hammer"} if config == "AblationConfig" else {}
+    required = {"AblationConfig": {"data": "d", "task": "hammer"},
+                "WorldModelFitConfig": {"world_model": "w", "data": "d", "demos": 5}}.get(config, {})
     assert seen["config"] == getattr(bench, config)(**required)
 
 

@@ -411,6 +411,38 @@ def test_bench_change_measures_every_cloud_on_held_out_transitions(reach_data, w
     assert "| imagined change |" in capsys.readouterr().out
 
 
+def test_bench_wm_fit_measures_the_trained_and_the_unseen_episodes_apart(reach_data, world_model, capsys):
+    """Its persistence figures against a hand computation on each split's own transitions."""
+    from scipy.spatial import cKDTree
+
+    from benchmarks.world_model_fit import WorldModelFitConfig, run
+    from d2a_agents.world_model.imagine import Imaginer
+
+    rows = run(WorldModelFitConfig(world_model=world_model, data=reach_data, demos=1, stride=40))
+    imaginer = Imaginer.from_checkpoint(world_model)
+    frames = DemoDataset.open(reach_data).frames()
+    episode = np.asarray(frames["episode"]).reshape(-1)
+    for name, index in (("trained on", 0), ("unseen", 1)):
+        rows_of_episode = np.flatnonzero(episode == index)
+        positions = range(0, len(rows_of_episode), 40)
+        counts, chamfer = np.zeros(3), 0.0
+        for position in positions:
+            target = rows_of_episode[min(position + imaginer.config.horizon, len(rows_of_episode) - 1)]
+            cloud = np.asarray(frames["point_cloud"][rows_of_episode[position]])[:, :3]
+            future = np.asarray(frames["point_cloud"][target])[:, :3]
+            now, then = (imaginer.grid.voxelize(torch.as_tensor(c)).numpy() for c in (cloud, future))
+            counts += [(now & then).sum(), (now & ~then).sum(), (~now & then).sum()]
+            chamfer += cKDTree(future).query(cloud)[0].mean() + cKDTree(cloud).query(future)[0].mean()
+        row = rows[name]
+        assert (row["episodes"], row["transitions"]) == (1, len(positions))
+        assert row["persistence_iou"] == pytest.approx(counts[0] / counts.sum())
+        assert row["chamfer_persistence"] == pytest.approx(chamfer / len(positions), rel=1e-4)
+        assert 0 <= row["full_iou"] <= 1 and row["chamfer_imagined"] > 0
+    assert "| unseen | 1 |" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="no episode after the first 2"):
+        run(WorldModelFitConfig(world_model=world_model, data=reach_data, demos=2))
+
+
 @pytest.mark.parametrize("algo", ["d2a", "d2a-present", "d2a-oracle"])
 def test_the_second_cloud_takes_a_point_count_of_its_own(algo, reach_data, world_model, tmp_path):
     config = policy_config(algo, reach_data, tmp_path, world_model=world_model if algo == "d2a" else None)

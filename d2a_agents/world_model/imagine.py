@@ -132,6 +132,7 @@ class Imaginer:
         self.band = band
         self.grow = grow
         self.keep_observed_points = keep_observed_points
+        self.threshold = threshold  # occupancy probability above which a voxel is imagined filled
         self.logit_threshold = logit(threshold)
         self.rng = np.random.default_rng(seed)
 
