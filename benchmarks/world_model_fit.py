@@ -50,21 +50,20 @@ def run(config: WorldModelFitConfig) -> dict[str, dict[str, float]]:
         raise ValueError(f"{config.data} holds no episode after the first {config.demos} of each task")
     imaginer = Imaginer.from_checkpoint(config.world_model)
     frames, model = dataset.frames(), imaginer.config
+    print(f"\n{Path(config.world_model).name} on {config.data}: every {config.stride}th transition, H = "
+          f"{model.horizon}; Chamfer to the true cloud H steps ahead in cm (a row as each split is measured)\n")
+    print("| episodes | count | transitions | full IoU | dynamic IoU | persistence IoU | Chamfer imagined | "
+          "Chamfer persistence |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
     rows = {}
     for name, episodes in (("trained on", trained), ("unseen", unseen)):
         transitions = WorldModelTransitions(frames, imaginer.grid, model.horizon, model.action_history, episodes)
         iou = validate(imaginer.model, transitions, config.stride, 0, imaginer.threshold)
         chamfer = imagination_chamfer(Path(config.world_model), dataset, episodes, config.stride)
-        rows[name] = dict(episodes=len(episodes), transitions=iou.transitions, full_iou=iou.full_iou,
-                          dynamic_iou=iou.dynamic_iou, persistence_iou=iou.persistence_full_iou,
-                          **{f"chamfer_{key}": value for key, value in chamfer.items()})
-    print(f"\n{Path(config.world_model).name} on {config.data}: every {config.stride}th transition, H = "
-          f"{model.horizon}; Chamfer to the true cloud H steps ahead in cm\n")
-    print("| episodes | count | transitions | full IoU | dynamic IoU | persistence IoU | Chamfer imagined | "
-          "Chamfer persistence |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-    for name, row in rows.items():
+        row = rows[name] = dict(episodes=len(episodes), transitions=iou.transitions, full_iou=iou.full_iou,
+                                dynamic_iou=iou.dynamic_iou, persistence_iou=iou.persistence_full_iou,
+                                **{f"chamfer_{key}": value for key, value in chamfer.items()})
         print(f"| {name} | {row['episodes']} | {row['transitions']} | {row['full_iou']:.3f} | "
               f"{row['dynamic_iou']:.3f} | {row['persistence_iou']:.3f} | {100 * row['chamfer_imagined']:.2f} | "
-              f"{100 * row['chamfer_persistence']:.2f} |")
+              f"{100 * row['chamfer_persistence']:.2f} |", flush=True)
     return rows
