@@ -33,17 +33,13 @@ class ChangeBenchConfig:
     num_points: int = 64  # the policy's point count
 
 
-def split_at(dataset: DemoDataset, demos: int) -> tuple[list[int], list[int]]:
-    """(the first ``demos`` episodes of each task, every episode after them)."""
-    per_task = [[e.index for e in dataset.metadata.episodes if e.task == task] for task in dataset.metadata.tasks]
-    return [i for ids in per_task for i in ids[:demos]], [i for ids in per_task for i in ids[demos:]]
-
-
 def held_out_episodes(dataset: DemoDataset, demos: int | None) -> list[int]:
     """Every episode after the first ``demos`` of each task, or the world model's own held-out ones."""
     if demos is None:
         return split_episodes(dataset, 0.2)[1]
-    episodes = split_at(dataset, demos)[1]
+    held = [ids[demos:] for ids in ([e.index for e in dataset.metadata.episodes if e.task == task]
+                                    for task in dataset.metadata.tasks)]
+    episodes = [index for ids in held for index in ids]
     if not episodes:
         raise ValueError(f"{dataset.directory} holds no episode after the first {demos} of each task")
     return episodes

@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.change import split_at
 from collectors.storage import DemoDataset
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.evaluation import imagination_chamfer
@@ -45,7 +44,8 @@ def run(config: WorldModelFitConfig) -> dict[str, dict[str, float]]:
     """Per split ("trained on", "unseen"): episodes, transitions, IoU (model, dynamic, persistence)
     and Chamfer distances in metres (``imagination_chamfer``'s keys, prefixed ``chamfer_``)."""
     dataset = DemoDataset.open_for_training(config.data)
-    trained, unseen = split_at(dataset, config.demos)
+    trained = [episode.index for episode in dataset.first_episodes(config.demos).metadata.episodes]
+    unseen = [episode.index for episode in dataset.metadata.episodes[len(trained):]]  # the view leads the storage
     if not unseen:
         raise ValueError(f"{config.data} holds no episode after the first {config.demos} of each task")
     imaginer = Imaginer.from_checkpoint(config.world_model)
