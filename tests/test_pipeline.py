@@ -215,6 +215,13 @@ def test_a_checkpoint_acts_with_other_actions_per_plan_draws_and_sample_steps(re
     assert len(result.successes) == 1
 
 
+def test_a_diffusion_checkpoint_refuses_more_sample_steps_than_its_schedule_on_loading(reach_data, tmp_path):
+    train_policy(dataclasses.replace(policy_config("dp3", reach_data, tmp_path, steps=1), eval_episodes=0))
+    assert load_policy(tmp_path, acting=Acting(sample_steps=100))[0].sample_steps == 100  # its 100 timesteps
+    with pytest.raises(ValueError, match=r"steps must lie in \[1, 100\], got 101"):
+        evaluate_checkpoint(tmp_path, "reach", 1, seed=0, acting=Acting(sample_steps=101), progress=False)
+
+
 class Killed(Exception):
     """Stands for the process being killed."""
 

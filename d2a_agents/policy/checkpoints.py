@@ -24,6 +24,7 @@ from d2a_agents.policy.agent import (
     normalizer_keys,
     reads_images,
 )
+from d2a_agents.policy.diffusion import Diffusion
 from d2a_envs.defaults import DEFAULT_MAX_EPISODE_STEPS
 from d2a_envs.tasks import get_task
 
@@ -85,6 +86,9 @@ def load_policy(path: str | Path, ema: bool = True, acting: Acting = Acting()) -
     except (ValueError, RuntimeError) as error:  # normalizers or weights of an older version
         raise CheckpointError(f"{path} was written by another version of the policy ({error}); "
                               "train the policy again") from error
+    if acting.sample_steps is not None and isinstance(policy.expert, Diffusion):
+        policy.expert.inference_timesteps(acting.sample_steps)  # refuses more steps than its schedule has, here
+        # rather than inside every evaluation worker
     policy.action_draws, policy.sample_steps = acting.action_draws, acting.sample_steps
     return policy.eval(), payload
 
