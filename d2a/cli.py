@@ -335,7 +335,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
     from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 
     preset = _replace_given(POLICY_PRESETS[args.preset], steps=args.steps, batch_size=args.batch_size,
-                            image_batch_size=args.batch_size, learning_rate=args.lr,
+                            image_batch_size=args.batch_size, learning_rate=args.lr, image_learning_rate=args.lr,
                             trim_after_success=args.trim_after_success)
     policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
                             n_action_steps=args.n_action_steps, num_points=args.policy_points,

@@ -539,6 +539,7 @@ def test_the_2d_diffusion_policy_trains_on_stored_images_and_acts_on_the_envs(tm
                                                 policy=dataclasses.replace(cpu.policy, algo=algo))
             for algo in ("dp", "mp1")}
     assert (runs["dp"].batch_size, runs["mp1"].batch_size) == (cpu.image_batch_size, cpu.batch_size) == (64, 256)
+    assert (runs["dp"].learning_rate, runs["mp1"].learning_rate) == (1e-4, 1e-3)  # Diffusion Policy's own for images
 
 
 def test_a_checkpoint_is_evaluated_with_its_demonstrations_episode_length_and_held_actions(tmp_path):

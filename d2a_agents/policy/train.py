@@ -76,15 +76,18 @@ class PolicyPreset:
     trim_after_success: int = -1  # frames kept after each demonstration's first success (-1: all)
     augment_shift: float | None = 0.0  # translation of the training windows (m); None: see augment_shift_for
     image_batch_size: int | None = None  # the batch of a policy that reads images (None: batch_size)
+    image_learning_rate: float | None = None  # the learning rate of a policy that reads images (None: learning_rate)
 
     def training_fields(self, policy: PolicyConfig | None = None) -> dict[str, Any]:
         """The ``TrainPolicyConfig`` fields the preset sets, for ``policy`` (default: the preset's
-        own): the batch is ``image_batch_size`` where that policy reads images."""
+        own): the batch and the learning rate are the ``image_`` ones where that policy reads images."""
         policy = policy or self.policy
+        image_fields = {"image_batch_size": "batch_size", "image_learning_rate": "learning_rate"}
         fields = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
-                  if field.name != "image_batch_size"}
-        if policy.encoder.use_image and self.image_batch_size is not None:
-            fields["batch_size"] = self.image_batch_size
+                  if field.name not in image_fields}
+        for image_field, field in image_fields.items():
+            if policy.encoder.use_image and getattr(self, image_field) is not None:
+                fields[field] = getattr(self, image_field)
         return {**fields, "policy": policy}
 
 
@@ -99,11 +102,13 @@ POLICY_PRESETS: dict[str, PolicyPreset] = {
     # Training stops 10 frames after each demonstration's first success: the expert holds still
     # after it (1/3 to 2/3 of the frames), and those frames taught the policy to stop short.
     # On Meta-World each training window is moved in the table plane by up to 2 cm along x and y.
-    # An image policy (dp) trains on batches of 64, Diffusion Policy's own batch for its image
-    # tasks: its ResNet-18 (a quarter of the widths) on 84-pixel images costs about 10x mp1's
-    # point encoder per window (`d2a bench train`: 189 against 1813 samples/s, one thread).
+    # An image policy (dp) trains on batches of 64 at 1e-4, Diffusion Policy's own batch and
+    # learning rate for its image tasks: its ResNet-18 (a quarter of the widths) on 84-pixel
+    # images costs about 10x mp1's point encoder per window (`d2a bench train`: 189 against 1813
+    # samples/s, one thread), and at 1e-3 the ResNet's features stopped depending on the image
+    # (docs/policies.md).
     "cpu": PolicyPreset(CPU_POLICY_PRESET, steps=4000, batch_size=256, learning_rate=1e-3, trim_after_success=10,
-                        augment_shift=None, image_batch_size=64),
+                        augment_shift=None, image_batch_size=64, image_learning_rate=1e-4),
     # Section IV of the paper: 1024 points (Meta-World), batch 128, 3000 epochs of 2000
     # demonstration steps (~47k steps), DP3's learning rate.
     "paper": PolicyPreset(PolicyConfig(num_points=1024), steps=47_000, batch_size=128, learning_rate=1e-4),
