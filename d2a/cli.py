@@ -342,6 +342,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                             imagined_points=args.imagined_points, oracle_horizon=args.oracle_horizon,
                             cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
                             cfg_guidance=args.cfg_guidance, cfg_scale=args.cfg_scale,
+                            meanflow_output=args.meanflow_output,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
     config = _replace_given(
         TrainPolicyConfig.from_preset(preset, data=args.data, out=args.out, policy=policy,
@@ -654,6 +655,9 @@ def build_parser() -> argparse.ArgumentParser:
                               help="interpolate: eq. 6 as written (towards the unconditional field, default); "
                                    "amplify: mixing weight 1 + cfg_scale * w (away from it, as MeanFlow guides)")
     train_policy.add_argument("--cfg-scale", type=float, default=None, help="k of --cfg-guidance amplify (default 1)")
+    train_policy.add_argument("--meanflow-output", choices=("velocity", "action"), default=None,
+                              help="what a MeanFlow network outputs: the average velocity (default, as MP1) or the "
+                                   "clean action chunk, read as the velocity it implies")
     train_policy.add_argument("--adaptive-power", type=float, default=None,
                               help="MeanFlow's adaptive loss power p (0: plain squared error; default: the preset's)")
     train_policy.add_argument("--trim-after-success", type=int, default=None, metavar="K",

@@ -59,6 +59,9 @@ def test_train_policy_defaults_to_the_cpu_preset_and_flags_override_it(captured)
     assert config.trim_after_success == 10
     main(["train-policy", "--data", "d", "--out", "o", "--trim-after-success", "-1"])
     assert captured["config"].trim_after_success == -1
+    assert captured["config"].policy.meanflow_output == "velocity"
+    main(["train-policy", "--data", "d", "--out", "o", "--meanflow-output", "action"])
+    assert captured["config"].policy.meanflow_output == "action"
     main(["train-policy", "--data", "d", "--out", "o", "--algo", "dp"])
     assert (captured["config"].batch_size, captured["config"].learning_rate) == (64, 1e-4)  # the image preset's
     main(["train-policy", "--data", "d", "--out", "o", "--algo", "dp", "--lr", "3e-4", "--batch-size", "16"])

@@ -323,3 +323,39 @@ def test_sampling_is_reproducible_and_multi_step_lands_on_the_exact_flow():
             PointMassVelocity(point), cond, generator=torch.Generator().manual_seed(0)
         )
         torch.testing.assert_close(landed, point.expand(6, 2, 3))
+
+
+class CleanActionNet(nn.Module):
+    """Outputs the clean chunk a(c) = c reshaped, whatever z, r and t are: the exact answer of an
+    action-output network where every condition has one demonstrated action."""
+
+    horizon, action_dim = 3, 2
+
+    def forward(self, z, r, t, cond, drop=None):
+        return cond.reshape(-1, self.horizon, self.action_dim) + 0 * z
+
+
+def test_an_action_output_network_reads_as_the_straight_flow_to_its_action():
+    """u = (z - x) / t: with x the demonstrated action a, u is A_1 - A_0 on every straight path
+    z_t = (1 - t) a + t n, its total derivative along (v, 0, 1) vanishes, so the eq. 5 target is
+    v itself, and one jump from noise lands on a; below min_time the division is capped."""
+    gen = torch.Generator().manual_seed(0)
+    batch = 8
+    actions = torch.randn(batch, 3, 2, generator=gen)
+    noise = torch.randn(batch, 3, 2, generator=gen)
+    t = 0.05 + 0.95 * torch.rand(batch, generator=gen)
+    r = t * torch.rand(batch, generator=gen)
+    z = (1 - t[:, None, None]) * actions + t[:, None, None] * noise
+    v = noise - actions
+    expert = MeanFlow(MeanFlowConfig(network_output="action", min_time=0.05))
+    u, target = meanflow_target(expert.velocity_field(CleanActionNet()), z, r, t, v, actions.flatten(1), None)
+    torch.testing.assert_close(u, v, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(target, v, rtol=1e-4, atol=1e-4)
+    landed = expert.sample(CleanActionNet(), actions.flatten(1), generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(landed, actions, rtol=1e-5, atol=1e-5)
+    small = torch.full((batch,), 0.01)
+    capped = expert.velocity_field(CleanActionNet())(z, small, small, actions.flatten(1))
+    torch.testing.assert_close(capped, (z - actions) / 0.05)
+    assert MeanFlow().velocity_field(CleanActionNet()).__class__ is CleanActionNet  # "velocity": the net itself
+    with pytest.raises(ValueError, match="network_output"):
+        MeanFlowConfig(network_output="noise")

@@ -143,6 +143,9 @@ class PolicyConfig:
     # guidance away from the unconditional field as MeanFlow / MP1 guide); see meanflow.py.
     cfg_guidance: str = "interpolate"
     cfg_scale: float = 1.0
+    # What a MeanFlow network outputs: "velocity" (the average velocity, as MeanFlow and MP1
+    # train it) or "action" (the clean chunk, read as a velocity; see meanflow.ActionOutput).
+    meanflow_output: str = "velocity"
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     network: VelocityNetConfig = field(default_factory=VelocityNetConfig)
 
@@ -250,7 +253,8 @@ def make_expert(config: PolicyConfig):
     tau_l, tau_h = config.cfg_thresholds
     return MeanFlow(MeanFlowConfig(cfg_enabled=config.variant.cfg, tau_l=tau_l, tau_h=tau_h,
                                    cfg_similarity=config.cfg_similarity, adaptive_power=config.adaptive_power,
-                                   cfg_guidance=config.cfg_guidance, cfg_scale=config.cfg_scale))
+                                   cfg_guidance=config.cfg_guidance, cfg_scale=config.cfg_scale,
+                                   network_output=config.meanflow_output))
 
 
 def subsample_cloud(cloud: torch.Tensor, num_points: int) -> torch.Tensor:

@@ -48,6 +48,7 @@ towards the unconditional field costs success at this budget; the prediction gat
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -57,6 +58,7 @@ from torch.func import jvp
 
 CFG_SIMILARITIES = ("velocity", "prediction")
 CFG_GUIDANCES = ("interpolate", "amplify")
+NETWORK_OUTPUTS = ("velocity", "action")
 
 
 @dataclass(frozen=True)
@@ -97,6 +99,10 @@ class MeanFlowConfig:
     cfg_guidance: str = "interpolate"
     cfg_scale: float = 1.0
     inference_steps: int = 1
+    # What the network outputs: "velocity" (u itself, as MeanFlow and MP1 train it) or "action"
+    # (the clean chunk x, read as u = (z - x) / max(t, min_time); see ActionOutput).
+    network_output: str = "velocity"
+    min_time: float = 0.05
 
     def __post_init__(self) -> None:
         if self.time_std <= 0:
@@ -117,6 +123,10 @@ class MeanFlowConfig:
             raise ValueError("cfg_scale must be >= 0")
         if self.inference_steps < 1:
             raise ValueError("inference_steps must be >= 1")
+        if self.network_output not in NETWORK_OUTPUTS:
+            raise ValueError(f"network_output must be one of {NETWORK_OUTPUTS}, got {self.network_output!r}")
+        if not 0 < self.min_time <= 1:
+            raise ValueError(f"min_time must lie in (0, 1], got {self.min_time}")
 
 
 def cfg_weight(rho: torch.Tensor, tau_l: float, tau_h: float) -> torch.Tensor:
@@ -140,7 +150,7 @@ def draw(
 
 
 def meanflow_target(
-    net: nn.Module,
+    net: Callable[..., torch.Tensor],
     z: torch.Tensor,
     r: torch.Tensor,
     t: torch.Tensor,
@@ -162,11 +172,35 @@ def meanflow_target(
     return u, target.detach()
 
 
+class ActionOutput:
+    """A network that outputs the clean action chunk x, called as the average velocity it
+    implies: u(z, r, t) = (z - x) / max(t, min_time).
+
+    Where the demonstrated action is one function of the condition, the flow runs straight
+    from each noise to that action, u = A_1 - A_0 = (z_t - A_0) / t on every [r, t], so the
+    network's answer is the action itself, whatever z, r and t are; read as a velocity it must
+    instead carry the noise z through to its output, which a network narrower than the chunk
+    hardly does. Below ``min_time`` the division is capped, as x-prediction flow models cap it
+    (the answer there is no longer constant in z, but any u stays reachable).
+    """
+
+    def __init__(self, net: nn.Module, min_time: float) -> None:
+        self.net, self.min_time = net, min_time
+
+    def __call__(self, z: torch.Tensor, r: torch.Tensor, t: torch.Tensor, cond: torch.Tensor,
+                 drop: torch.Tensor | None = None) -> torch.Tensor:
+        return (z - self.net(z, r, t, cond, drop)) / per_sample(t.clamp_min(self.min_time), z)
+
+
 class MeanFlow:
     """MeanFlow loss (with adaptive CFG in the target) and few-step sampler over ``net(z, r, t, cond, drop)``."""
 
     def __init__(self, config: MeanFlowConfig | None = None) -> None:
         self.config = config or MeanFlowConfig()
+
+    def velocity_field(self, net: nn.Module) -> Callable[..., torch.Tensor]:
+        """``net`` as the average velocity u(z, r, t, cond, drop), by ``config.network_output``."""
+        return net if self.config.network_output == "velocity" else ActionOutput(net, self.config.min_time)
 
     def sample_times(
         self, batch: int, like: torch.Tensor, generator: torch.Generator | None = None
@@ -189,6 +223,7 @@ class MeanFlow:
         conditional one shares the null one's forward pass (one batch of 2B).
         """
         batch = z.shape[0]
+        net = self.velocity_field(net)
         with torch.no_grad():
             if self.config.cfg_similarity == "velocity":
                 u_null = net(z, t, t, cond, torch.ones(batch, dtype=torch.bool, device=z.device))
@@ -228,7 +263,7 @@ class MeanFlow:
             info["drop_fraction"] = drop.float().mean().item()
             for key, value in (("cfg_weight", w), ("cfg_rho", rho), ("cfg_active", (w < 1).float())):
                 info[key] = value[kept].mean().item() if kept.any() else float("nan")
-        u, target = meanflow_target(net, z, r, t, v, cond, drop)
+        u, target = meanflow_target(self.velocity_field(net), z, r, t, v, cond, drop)
         squared_error = (u - target).pow(2).flatten(1).sum(dim=1)
         weight = (squared_error.detach() + c.adaptive_eps).pow(-c.adaptive_power)
         loss = (weight * squared_error).mean()
@@ -253,7 +288,8 @@ class MeanFlow:
         batch = cond.shape[0]
         z = draw("randn", (batch, net.horizon, net.action_dim), cond, generator)
         times = torch.linspace(1.0, 0.0, steps + 1, dtype=cond.dtype, device=cond.device)
+        velocity = self.velocity_field(net)
         for t_value, r_value in zip(times[:-1], times[1:], strict=True):
             t, r = t_value.expand(batch), r_value.expand(batch)
-            z = z - (t_value - r_value) * net(z, r, t, cond)
+            z = z - (t_value - r_value) * velocity(z, r, t, cond)
         return z
