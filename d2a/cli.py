@@ -134,8 +134,9 @@ def _add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: st
 
 
 def _add_policy_options(parser: argparse.ArgumentParser) -> None:
-    """The policy's point budget and the oracle's horizon (in a success bench, cells of a changed
-    preset are named by what differs from the ``cpu`` preset, e.g. ``..._num_points128``)."""
+    """The policy's point budget, the oracle's horizon and the MeanFlow network's output (in a
+    success bench, cells of a changed preset are named by what differs from the ``cpu`` preset,
+    e.g. ``..._num_points128``)."""
     parser.add_argument("--policy-points", type=POSITIVE, default=None,
                         help="points per cloud the encoders read, farthest-point sampled from the data's clouds "
                              "(default: the preset's, cpu 64; the env's cloud size is the data's)")
@@ -144,13 +145,16 @@ def _add_policy_options(parser: argparse.ArgumentParser) -> None:
                              "default: --policy-points)")
     parser.add_argument("--oracle-horizon", type=POSITIVE, default=None,
                         help="steps ahead of d2a-oracle's true future cloud (default 4, the world models' horizon)")
+    parser.add_argument("--meanflow-output", choices=("velocity", "action"), default=None,
+                        help="what a MeanFlow network outputs: the average velocity (default, as MP1) or the clean "
+                             "action chunk, read as the velocity it implies")
 
 
 def _with_policy_options(bench: Any, args: argparse.Namespace) -> Any:
     """A success bench's per-cell settings with the policy options given (steps, point budget,
-    oracle horizon)."""
+    oracle horizon, MeanFlow output)."""
     policy = _replace_given(bench.policy.policy, num_points=args.policy_points, imagined_points=args.imagined_points,
-                            oracle_horizon=args.oracle_horizon)
+                            oracle_horizon=args.oracle_horizon, meanflow_output=args.meanflow_output)
     return dataclasses.replace(bench, policy=_replace_given(bench.policy, steps=args.steps, policy=policy))
 
 
@@ -655,9 +659,6 @@ def build_parser() -> argparse.ArgumentParser:
                               help="interpolate: eq. 6 as written (towards the unconditional field, default); "
                                    "amplify: mixing weight 1 + cfg_scale * w (away from it, as MeanFlow guides)")
     train_policy.add_argument("--cfg-scale", type=float, default=None, help="k of --cfg-guidance amplify (default 1)")
-    train_policy.add_argument("--meanflow-output", choices=("velocity", "action"), default=None,
-                              help="what a MeanFlow network outputs: the average velocity (default, as MP1) or the "
-                                   "clean action chunk, read as the velocity it implies")
     train_policy.add_argument("--adaptive-power", type=float, default=None,
                               help="MeanFlow's adaptive loss power p (0: plain squared error; default: the preset's)")
     train_policy.add_argument("--trim-after-success", type=int, default=None, metavar="K",
