@@ -296,7 +296,8 @@ def test_demos_reach_the_trainers_and_the_bench(captured):
     assert policy.policy.oracle_horizon == 8
     main(["bench", "success", "--meanflow-output", "action"])
     assert captured["config"].policy.policy.meanflow_output == "action"
-    assert benchmarks.success._cell_name(captured["config"], "push", "mp1", 0).endswith("_meanflow_outputaction")  # apart from the rest
+    name = benchmarks.success._cell_name(captured["config"], "push", "mp1", 0)
+    assert name.endswith("_meanflow_outputaction")  # its cells apart from the rest
 
 
 def test_bench_table1_options_and_defaults(monkeypatch):
