@@ -898,8 +898,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_ray_option(bench_success)
     bench_success.set_defaults(func=cmd_bench_success)
 
-    bench_table1 = bench.add_parser("table1", help="the paper's Table I: Meta-World groups and Adroit x methods x seeds, "
-                                                   "resumable; per-group table beside the paper's rows, CSV, plot")
+    bench_table1 = bench.add_parser(
+        "table1", help="the paper's Table I: Meta-World groups and Adroit x methods x seeds, resumable; "
+                       "per-group table beside the paper's rows, CSV, plot")
     bench_table1.add_argument("--group", action="append", choices=("very_hard", "hard", "medium", "easy", "adroit"),
                               default=None, help="repeat for several (default: very_hard hard medium easy adroit, in "
                                                  "order; adroit: the three Adroit columns, at their own settings)")

@@ -206,9 +206,10 @@ def test_a_checkpoint_acts_with_other_actions_per_plan_draws_and_sample_steps(re
     stepped, _ = load_policy(tmp_path, acting=Acting(sample_steps=4))
     window = {key: torch.zeros(1, 2, *shape) for key, shape in (("point_cloud", (8, 3)), ("agent_pos", (4,)))}
     for policy, evaluations in ((stored, 1), (stepped, 4)):  # one per chunk as trained, four when asked
-        calls = []
-        policy.net.register_forward_hook(lambda *_: calls.append(1))
+        calls: list[int] = []
+        hook = policy.net.register_forward_hook(lambda *_, calls=calls: calls.append(1))
         policy.sample_normalized(window)
+        hook.remove()
         assert len(calls) == evaluations
     result = evaluate_checkpoint(tmp_path, "reach", 1, seed=0, acting=Acting(n_action_steps=1, action_draws=2),
                                  progress=False)

@@ -39,8 +39,8 @@ from d2a_agents.policy.agent import (
 )
 from d2a_agents.policy.checkpoints import (
     CHECKPOINT_KIND,
-    Acting,
     CHECKPOINT_NAME,
+    Acting,
     evaluate_checkpoint,
     imaginer_tasks,
     load_policy,
