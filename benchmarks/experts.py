@@ -6,10 +6,11 @@ episodes are run again with a longer limit (same seeds, so the same layouts and,
 experts being deterministic, the same first 200 steps) and one that still fails is looked
 at (Meta-World): how close the hand got to the object and the object to the goal. With
 ``imitation_demos``, the learnability check: ``mp1-state`` (the action expert on the simulator
-state, so perception plays no part) trained on that many of the expert's demonstrations and
-evaluated on ``imitation_episodes`` new layouts; an expert whose actions are not a function of
-the state shows a wide gap. Last, the same episodes are evaluated in one process and with
-``workers`` processes, side by side.
+state, so perception plays no part; ``imitation_algo="dp3-state"``: the diffusion expert)
+trained on that many of the expert's demonstrations and evaluated on ``imitation_episodes``
+new layouts; an expert whose actions are not a function of the state shows a wide gap.
+Last, the same episodes are evaluated in one process and with ``workers`` processes, side by
+side.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from collectors.envs import STATE_KEY, make_torchrl_env
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
 from collectors.experts import expert_env_kwargs, make_expert
 from collectors.ray_jobs import ray_connection
+from d2a_agents.policy.agent import VARIANTS
 from d2a_agents.policy.checkpoints import Acting, evaluate_checkpoint
 from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 from d2a_envs.tasks import DIFFICULTIES
@@ -79,13 +81,21 @@ class ExpertBenchConfig:
     imitation_dart_noise: float = 0.0  # DART noise of the check's collection (0: plain demonstrations)
     imitation_steps: int = POLICY_PRESETS["cpu"].steps
     imitation_action_draws: int = 1  # chunks drawn per plan, acted on as their mean (d2a eval --action-draws)
+    imitation_algo: str = "mp1-state"  # the check's state policy: a privileged-state reference of policy.agent
     workdir: str = "outputs/bench_experts"  # the check's demonstrations and policies
+
+    def __post_init__(self) -> None:
+        if self.imitation_algo not in VARIANTS or VARIANTS[self.imitation_algo].observation != "state":
+            state_algos = [algo for algo, variant in VARIANTS.items() if variant.observation == "state"]
+            raise ValueError(f"imitation_algo must be a state policy, one of {state_algos}; "
+                             f"got {self.imitation_algo!r}")
 
 
 def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
-    """``mp1-state`` trained (``cpu`` preset, one thread) on ``imitation_demos`` of the expert's
-    demonstrations of ``task`` (collected with ``imitation_dart_noise``), its final checkpoint
-    on ``imitation_episodes`` new layouts, acting on the mean of ``imitation_action_draws``."""
+    """``imitation_algo`` (``mp1-state``; ``dp3-state``: the diffusion expert) trained (``cpu``
+    preset, one thread) on ``imitation_demos`` of the expert's demonstrations of ``task``
+    (collected with ``imitation_dart_noise``), its final checkpoint on ``imitation_episodes``
+    new layouts, acting on the mean of ``imitation_action_draws``."""
     dart = dart_tag(config.imitation_dart_noise)
     data = Path(config.workdir) / "data" / f"{task}{dart}"
     attempts = {"max_attempts_factor": DART_MAX_ATTEMPTS_FACTOR} if dart else {}
@@ -93,9 +103,9 @@ def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
                           env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise, progress=False,
                           **attempts))
     preset = POLICY_PRESETS["cpu"]
-    run = Path(config.workdir) / "runs" / f"{task}_mp1-state_d{config.imitation_demos}{dart}"
+    run = Path(config.workdir) / "runs" / f"{task}_{config.imitation_algo}_d{config.imitation_demos}{dart}"
     train_policy(TrainPolicyConfig.from_preset(
-        preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo="mp1-state"),
+        preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=config.imitation_algo),
         steps=config.imitation_steps, demos=config.imitation_demos, eval_episodes=0, threads=1, progress=False))
     return evaluate_checkpoint(run, task, config.imitation_episodes, IMITATION_SEED, workers=config.workers,
                                end_on_success=True, progress=False, ray_address=config.ray_address,
@@ -198,7 +208,8 @@ def _run(config: ExpertBenchConfig) -> list[dict[str, object]]:
         f" {config.max_steps} steps, env {config.env_kwargs}, {config.workers} workers\n"
     )
     draws = f", mean of {config.imitation_action_draws} draws" if config.imitation_action_draws > 1 else ""
-    imitation_header = (f" mp1-state on {config.imitation_demos} demonstrations{draws} [95 %] | of the expert's |"
+    imitation_header = (f" {config.imitation_algo} on {config.imitation_demos} demonstrations{draws} [95 %] "
+                        "| of the expert's |"
                         if config.imitation_demos else "")
     print("| task | difficulty | success | mean return | median first-success step |" + imitation_header)
     print("| --- | --- | --- | --- | --- |" + (" --- | --- |" if config.imitation_demos else ""))

@@ -16,7 +16,8 @@ if TYPE_CHECKING:
 
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
 ALGOS = ("d2a", "d2a-change", "d2a-change-top", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "d2a-oracle",
-         "mp1", "dp3", "flowpolicy", "edm", "cp", "dp", "mp1-state")
+         "mp1", "dp3", "flowpolicy", "edm", "cp", "dp", "mp1-state", "dp3-state")
+STATE_ALGOS = tuple(algo for algo in ALGOS if algo.endswith("-state"))  # the privileged-state references
 EVAL_LAYOUTS = ("fixed", "fresh")  # d2a_agents.policy.train.EVAL_LAYOUTS, likewise
 EXPERT_KINDS = ("controller", "planner")  # collectors.adroit_experts.EXPERT_KINDS, likewise
 
@@ -398,7 +399,7 @@ def cmd_bench_experts(args: argparse.Namespace) -> None:
                        workers=args.workers, ray_address=args.ray, imitation_demos=args.imitation_demos,
                        imitation_episodes=args.imitation_episodes, workdir=args.workdir,
                        imitation_dart_noise=args.imitation_dart_noise,
-                       imitation_action_draws=args.imitation_action_draws))
+                       imitation_action_draws=args.imitation_action_draws, imitation_algo=args.imitation_algo))
 
 
 def cmd_bench_tune_expert(args: argparse.Namespace) -> None:
@@ -634,8 +635,8 @@ def build_parser() -> argparse.ArgumentParser:
     train_policy.add_argument("--data", required=True)
     train_policy.add_argument("--out", required=True, help="run directory; an existing run is resumed")
     train_policy.add_argument("--algo", choices=ALGOS, default="d2a",
-                              help="mp1-state: the privileged-state reference (no cloud; the perception upper "
-                                   "bound); dp: the 2D Diffusion Policy (data collected with --rgb-image-size)")
+                              help="mp1-state, dp3-state: the privileged-state references (no cloud; the perception "
+                                   "upper bound); dp: the 2D Diffusion Policy (data collected with --rgb-image-size)")
     train_policy.add_argument("--world-model", default=None, help="checkpoint of d2a train-wm (d2a variants)")
     train_policy.add_argument("--teacher", default=None,
                               help="--algo cp: the EDM teacher it distils (policy.pt of --algo edm, same data)")
@@ -754,6 +755,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench_experts.add_argument("--workers", type=POSITIVE, default=None)
     bench_experts.add_argument("--imitation-demos", type=NON_NEGATIVE, default=None,
                                help="the learnability check: mp1-state trained on this many demonstrations (0: off)")
+    bench_experts.add_argument("--imitation-algo", choices=STATE_ALGOS, default=None,
+                               help="the check's state policy (default mp1-state; dp3-state: the diffusion expert)")
     bench_experts.add_argument("--imitation-episodes", type=POSITIVE, default=None,
                                help="its evaluation episodes on new layouts (default 100)")
     bench_experts.add_argument("--imitation-dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",

@@ -1,6 +1,8 @@
-"""The learnability check of ``d2a bench experts``: mp1-state on the expert's demonstrations."""
+"""The learnability check of ``d2a bench experts``: a state policy on the expert's demonstrations."""
 
 from __future__ import annotations
+
+import pytest
 
 from benchmarks.experts import IMITATION_SEED, ExpertBenchConfig, imitation_success
 from collectors.storage import DemoDataset
@@ -8,14 +10,23 @@ from d2a_agents.checkpoint import load_checkpoint
 from d2a_agents.policy.checkpoints import policy_file
 
 
-def test_imitation_trains_mp1_state_on_the_demonstrations_and_evaluates_new_layouts(tmp_path):
+@pytest.mark.parametrize("algo", ["mp1-state", "dp3-state"])
+def test_imitation_trains_a_state_policy_on_the_demonstrations_and_evaluates_new_layouts(algo, tmp_path):
     config = ExpertBenchConfig(tasks=("reach",), env_kwargs={"image_size": 32, "num_points": 32}, workers=1,
-                               imitation_demos=2, imitation_episodes=2, imitation_steps=2, workdir=str(tmp_path))
+                               imitation_demos=2, imitation_episodes=2, imitation_steps=2, workdir=str(tmp_path),
+                               imitation_algo=algo)
     result = imitation_success(config, "reach")
     assert result.episodes == 2 and result.seeds == [IMITATION_SEED, IMITATION_SEED + 1]
     assert len(DemoDataset.open(tmp_path / "data" / "reach").metadata.episodes) == 2
-    payload = load_checkpoint(policy_file(tmp_path / "runs" / "reach_mp1-state_d2"), "policy")
-    assert payload["policy_config"]["algo"] == "mp1-state" and payload["step"] == 2
+    payload = load_checkpoint(policy_file(tmp_path / "runs" / f"reach_{algo}_d2"), "policy")
+    assert payload["policy_config"]["algo"] == algo and payload["step"] == 2
+    assert payload["policy_config"]["encoder"]["use_cloud"] is False
+
+
+@pytest.mark.parametrize("algo", ["mp1", "dp3", "no-such-algo"])
+def test_the_check_refuses_a_policy_that_reads_clouds(algo):
+    with pytest.raises(ValueError, match="imitation_algo must be a state policy"):
+        ExpertBenchConfig(imitation_algo=algo)
 
 
 def test_the_check_collects_with_dart_noise_apart_when_asked(tmp_path):

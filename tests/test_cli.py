@@ -113,11 +113,23 @@ def test_bench_wm_sets_the_main_model_the_baseline_row_and_the_collection(captur
 
 def test_the_cli_offers_every_policy_variant_and_expert_kind():
     from collectors.adroit_experts import EXPERT_KINDS
-    from d2a.cli import ALGOS
+    from d2a.cli import ALGOS, STATE_ALGOS
     from d2a.cli import EXPERT_KINDS as CLI_EXPERT_KINDS
-    from d2a_agents.policy.agent import ALGORITHMS
+    from d2a_agents.policy.agent import ALGORITHMS, VARIANTS
 
     assert ALGOS == ALGORITHMS and CLI_EXPERT_KINDS == EXPERT_KINDS
+    assert STATE_ALGOS == tuple(algo for algo, variant in VARIANTS.items() if variant.observation == "state")
+
+
+def test_the_learnability_check_takes_its_state_policy(monkeypatch):
+    import benchmarks.experts
+
+    seen = {}
+    monkeypatch.setattr(benchmarks.experts, "run", lambda given: seen.setdefault("config", given))
+    main(["bench", "experts", "--imitation-demos", "10", "--imitation-algo", "dp3-state"])
+    assert (seen["config"].imitation_algo, seen["config"].imitation_demos) == ("dp3-state", 10)
+    with pytest.raises(SystemExit):
+        main(["bench", "experts", "--imitation-algo", "mp1"])  # reads clouds: not a state reference
 
 
 def test_the_cli_offers_every_kind_of_evaluation_layouts(captured):

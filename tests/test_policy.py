@@ -35,6 +35,7 @@ def tiny_policy(algo: str, **changes) -> Policy:
     ("mp1", MeanFlow, False, False, ("point_cloud", "agent_pos"), 1.0),
     ("dp3", Diffusion, None, False, ("point_cloud", "agent_pos"), 1000.0),
     ("mp1-state", MeanFlow, False, False, ("state",), 1.0),
+    ("dp3-state", Diffusion, None, False, ("state",), 1000.0),
 ])
 def test_algo_flag_selects_expert_cfg_imagination_and_inputs(algo, expert, cfg, imagination, keys, time_scale):
     policy = tiny_policy(algo, cfg_thresholds=(-0.5, 0.25), cfg_similarity="velocity", adaptive_power=0.5,

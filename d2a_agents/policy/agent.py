@@ -18,10 +18,13 @@ Variants (``--algo``), all on the same encoders, network, data and evaluation:
 | ``cp`` | consistency student of an ``edm`` run, 1 step (Consistency Policy) | cloud + ``agent_pos`` | no | no |
 | ``dp`` | diffusion, DDIM 10 steps (2D Diffusion Policy) | camera image + ``agent_pos`` | no | no |
 | ``mp1-state`` | MeanFlow, 1 step | the simulator's ``state`` | no | no |
+| ``dp3-state`` | diffusion, DDIM 10 steps | the simulator's ``state`` | no | no |
 
 ``mp1-state`` is the perception reference: the same action expert fed privileged state
 (Meta-World's 39-d observation holds the object positions), i.e. what the expert does with
-perfect perception at the same budget. ``d2a-present`` is the control of imagination: the
+perfect perception at the same budget; ``dp3-state`` is the same reference for the diffusion
+expert (where it imitates demonstrations that ``mp1-state`` does not, the one-step expert is
+what falls short, not the demonstrations). ``d2a-present`` is the control of imagination: the
 second encoder reads the current cloud in place of the imagined one (no world model), so
 ``d2a`` against it separates what the imagined future adds from what a second encoder adds.
 ``d2a-oracle`` is imagination's upper bound: it reads the cloud the scene really shows
@@ -88,6 +91,7 @@ VARIANTS: dict[str, Variant] = {
     "cp": Variant("consistency-trajectory"),
     "dp": Variant("diffusion", observation="image"),
     "mp1-state": Variant("meanflow", observation="state"),
+    "dp3-state": Variant("diffusion", observation="state"),
 }
 ALGORITHMS = tuple(VARIANTS)
 # Steps ahead of ``d2a-oracle``'s future cloud by default: the world models' horizon (WorldModelConfig.horizon).
