@@ -28,7 +28,7 @@ import torch
 from tqdm import tqdm
 
 import d2a_envs
-from collectors.collect import DART_MAX_ATTEMPTS_FACTOR, CollectConfig, collect, dart_tag
+from collectors.collect import CollectConfig, collect, dart_tag
 from collectors.envs import STATE_KEY, make_torchrl_env
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
 from collectors.experts import expert_env_kwargs, make_expert
@@ -98,10 +98,8 @@ def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
     new layouts, acting on the mean of ``imitation_action_draws``."""
     dart = dart_tag(config.imitation_dart_noise)
     data = Path(config.workdir) / "data" / f"{task}{dart}"
-    attempts = {"max_attempts_factor": DART_MAX_ATTEMPTS_FACTOR} if dart else {}
     collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.imitation_demos, append=True,
-                          env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise, progress=False,
-                          **attempts))
+                          env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise, progress=False))
     preset = POLICY_PRESETS["cpu"]
     run = Path(config.workdir) / "runs" / f"{task}_{config.imitation_algo}_d{config.imitation_demos}{dart}"
     train_policy(TrainPolicyConfig.from_preset(

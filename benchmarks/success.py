@@ -55,7 +55,7 @@ from typing import Any, TypeVar
 from tqdm import tqdm
 
 from collectors.atomic import DirectoryBusyError, atomic_write_text, exclusive_writer
-from collectors.collect import DART_MAX_ATTEMPTS_FACTOR, CollectConfig, collect, dart_tag
+from collectors.collect import CollectConfig, collect, dart_tag
 from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
 from d2a_agents.policy.agent import reads_images, uses_imagination
@@ -212,7 +212,6 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     _when_free(lambda: collect(CollectConfig(
         tasks=(task,), out=str(data), episodes=config.pool or config.demos, seed=0, append=True,
         env_kwargs=env_kwargs, dart_noise=config.dart_noise,
-        **({"max_attempts_factor": DART_MAX_ATTEMPTS_FACTOR} if config.dart_noise else {}),
         progress=config.ray_address is None, ray_address=config.ray_address,
     )), f"{task} demonstrations")
     if config.wm_rollouts:

@@ -50,7 +50,8 @@ class CollectConfig:
         out: data set directory.
         episodes: successful episodes to keep per task (the paper: 10).
         seed: seed of the first attempt; attempt k uses seed + k.
-        max_attempts_factor: give up on a task after ``episodes * max_attempts_factor`` attempts.
+        max_attempts_factor: give up on a task after ``episodes * max_attempts_factor`` attempts
+            (None: 3, or :data:`DART_MAX_ATTEMPTS_FACTOR` with ``dart_noise``; see ``attempts_factor``).
         max_episode_steps: steps per episode (DP3/MP1: 200).
         env_kwargs: point-cloud settings passed to ``gym.make`` (cameras, num_points, ...).
         append: add to an existing data set (resuming an interrupted collection).
@@ -72,7 +73,7 @@ class CollectConfig:
     out: str
     episodes: int = 10
     seed: int = 0
-    max_attempts_factor: int = 3
+    max_attempts_factor: int | None = None
     max_episode_steps: int = d2a_envs.DEFAULT_MAX_EPISODE_STEPS
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     append: bool = False
@@ -88,9 +89,17 @@ class CollectConfig:
     def expert_settings(self) -> ExpertSettings:
         return ExpertSettings(self.expert, self.action_noise, self.dart_noise)
 
+    @property
+    def attempts_factor(self) -> int:
+        """``max_attempts_factor``, or where it is not given the default for this collection."""
+        if self.max_attempts_factor is not None:
+            return self.max_attempts_factor
+        return DART_MAX_ATTEMPTS_FACTOR if self.dart_noise else PLAIN_MAX_ATTEMPTS_FACTOR
 
-# Attempts per kept episode that benches allow a DART collection: the perturbed expert fails
-# more often (Door at noise 0.05: 10 kept of 23 attempts), where plain collection allows 3.
+
+# Attempts per kept episode allowed by default. The DART-perturbed expert fails more often
+# (Door at noise 0.05: 10 kept of 23 attempts; Hammer at 0.1: 10 of 46).
+PLAIN_MAX_ATTEMPTS_FACTOR = 3
 DART_MAX_ATTEMPTS_FACTOR = 10
 
 
@@ -133,7 +142,7 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
                     f"DART noise {record.dart_noise}; resume it with those, or pass another --seed")
             return record
         # The attempts this run may make must not reuse a seed: that would store an episode twice.
-        last = config.seed + config.episodes * config.max_attempts_factor - 1
+        last = config.seed + config.episodes * config.attempts_factor - 1
         if record.attempts and config.seed <= record.seed + record.attempts - 1 and record.seed <= last:
             raise DatasetError(
                 f"seeds {config.seed}..{last} (this run's attempts) overlap seeds {record.seed}.."
@@ -155,7 +164,7 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
     spec = d2a_envs.get_task(task)
     record = _collection_for(dataset, spec.name, config)
     collection_index = dataset.metadata.collections.index(record)
-    max_attempts = config.episodes * config.max_attempts_factor
+    max_attempts = config.episodes * config.attempts_factor
     if record.kept >= config.episodes:
         return record
     env_kwargs = {**_env_kwargs(config), **expert_env_kwargs(spec.name)}  # the expert's extra input is not stored
@@ -252,7 +261,7 @@ def collect(config: CollectConfig) -> DemoDataset:
             raise ValueError(f"the {spec.name} planner plans one action per simulator step; with action_repeat "
                              f"{config.env_kwargs['action_repeat']} its plans would run at the wrong pace (the "
                              "controllers and the scripted experts act on the state and hold any pace)")
-    if config.max_episode_steps < 1 or config.max_attempts_factor < 1:
+    if config.max_episode_steps < 1 or config.attempts_factor < 1:
         raise ValueError("max_episode_steps and max_attempts_factor must be at least 1")
     # Bad env settings (num_points 0, an unknown camera...) fail here, before the output
     # directory is touched: --overwrite must not wipe a data set for a run that cannot start.

@@ -585,7 +585,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_env_options(collect, several_tasks=True)
     collect.add_argument("--episodes", type=POSITIVE, default=None, help="successful episodes to keep per task")
     collect.add_argument("--out", required=True, help="data set directory")
-    collect.add_argument("--max-attempts-factor", type=POSITIVE, default=None, help="give up after episodes x this")
+    collect.add_argument("--max-attempts-factor", type=POSITIVE, default=None, help="give up after episodes x this "
+                         "(default 3; 10 with --dart-noise, whose perturbed expert fails more often)")
     collect.add_argument("--max-episode-steps", type=POSITIVE, default=None)
     collect.add_argument("--action-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
                          help="Gaussian noise added to the expert's actions: rollouts for a world model, never "

@@ -121,6 +121,15 @@ def test_killed_collection_keeps_its_episodes_and_resumes_exactly(tmp_path):
         assert torch.equal(resumed.frames()[key], fresh.frames()[key]), key
 
 
+def test_a_dart_collection_is_allowed_more_attempts_unless_told_otherwise():
+    plain = CollectConfig(tasks=("reach",), out="o")
+    dart = CollectConfig(tasks=("reach",), out="o", dart_noise=0.05)
+    assert (plain.attempts_factor, dart.attempts_factor) == (3, 10)  # the perturbed expert fails more often
+    assert CollectConfig(tasks=("reach",), out="o", dart_noise=0.05, max_attempts_factor=2).attempts_factor == 2
+    with pytest.raises(ValueError, match="max_attempts_factor must be at least 1"):
+        collect(CollectConfig(tasks=("reach",), out="o", max_attempts_factor=0))
+
+
 def test_seed_each_reset_gives_consecutive_seeds():
     env = SeedEachReset(gym.make("D2A-MetaWorld-Push-v0", **ENV_KWARGS), seed=5)
     seeds, states = [], []
