@@ -33,7 +33,7 @@ from collectors.envs import STATE_KEY, make_torchrl_env
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
 from collectors.experts import expert_env_kwargs, make_expert
 from collectors.ray_jobs import ray_connection
-from d2a_agents.policy.agent import VARIANTS
+from d2a_agents.policy.agent import STATE_ALGORITHMS
 from d2a_agents.policy.checkpoints import Acting, evaluate_checkpoint
 from d2a_agents.policy.train import POLICY_PRESETS, TrainPolicyConfig, train_policy
 from d2a_envs.tasks import DIFFICULTIES
@@ -85,9 +85,8 @@ class ExpertBenchConfig:
     workdir: str = "outputs/bench_experts"  # the check's demonstrations and policies
 
     def __post_init__(self) -> None:
-        if self.imitation_algo not in VARIANTS or VARIANTS[self.imitation_algo].observation != "state":
-            state_algos = [algo for algo, variant in VARIANTS.items() if variant.observation == "state"]
-            raise ValueError(f"imitation_algo must be a state policy, one of {state_algos}; "
+        if self.imitation_algo not in STATE_ALGORITHMS:
+            raise ValueError(f"imitation_algo must be a state policy, one of {list(STATE_ALGORITHMS)}; "
                              f"got {self.imitation_algo!r}")
 
 

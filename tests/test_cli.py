@@ -115,10 +115,10 @@ def test_the_cli_offers_every_policy_variant_and_expert_kind():
     from collectors.adroit_experts import EXPERT_KINDS
     from d2a.cli import ALGOS, STATE_ALGOS
     from d2a.cli import EXPERT_KINDS as CLI_EXPERT_KINDS
-    from d2a_agents.policy.agent import ALGORITHMS, VARIANTS
+    from d2a_agents.policy.agent import ALGORITHMS, STATE_ALGORITHMS
 
     assert ALGOS == ALGORITHMS and CLI_EXPERT_KINDS == EXPERT_KINDS
-    assert STATE_ALGOS == tuple(algo for algo, variant in VARIANTS.items() if variant.observation == "state")
+    assert STATE_ALGOS == STATE_ALGORITHMS == ("mp1-state", "dp3-state")
 
 
 def test_the_learnability_check_takes_its_state_policy(monkeypatch):

@@ -94,6 +94,7 @@ VARIANTS: dict[str, Variant] = {
     "dp3-state": Variant("diffusion", observation="state"),
 }
 ALGORITHMS = tuple(VARIANTS)
+STATE_ALGORITHMS = tuple(algo for algo, variant in VARIANTS.items() if variant.observation == "state")  # no cloud
 # Steps ahead of ``d2a-oracle``'s future cloud by default: the world models' horizon (WorldModelConfig.horizon).
 ORACLE_HORIZON = 4
 
