@@ -60,8 +60,8 @@ def make_torchrl_env(
     Every episode gets its own seed (:class:`~d2a_envs.wrappers.SeedEachReset`): with
     ``seed=s`` the episodes use s, s + 1, ... whatever collector drives the env, and each
     step carries its episode's seed in ``episode_seed``. ``env_kwargs`` go to ``gym.make``, less
-    :data:`EXPERT_FUTURE_KEY`, whose dict (``horizon``, ``num_points``) adds the expert's true
-    future cloud (:class:`~collectors.expert_future.ExpertFuture`).
+    :data:`EXPERT_FUTURE_KEY`, whose dict (``horizon``, ``num_points``, ``stacked_horizons``) adds
+    the expert's true future cloud (:class:`~collectors.expert_future.ExpertFuture`).
 
     Example:
         >>> env = make_torchrl_env("hammer", {"num_points": 512})

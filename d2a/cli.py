@@ -135,7 +135,7 @@ def _add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: st
 
 
 def _add_policy_options(parser: argparse.ArgumentParser) -> None:
-    """The policy's point budget, the oracle's horizon and the MeanFlow network's output (in a
+    """The policy's point budget, the oracle's horizons and the MeanFlow network's output (in a
     success bench, cells of a changed preset are named by what differs from the ``cpu`` preset,
     e.g. ``..._num_points128``)."""
     parser.add_argument("--policy-points", type=POSITIVE, default=None,
@@ -146,6 +146,9 @@ def _add_policy_options(parser: argparse.ArgumentParser) -> None:
                              "default: --policy-points)")
     parser.add_argument("--oracle-horizon", type=POSITIVE, default=None,
                         help="steps ahead of d2a-oracle's true future cloud (default 4, the world models' horizon)")
+    parser.add_argument("--stacked-horizon", type=POSITIVE, action="append", default=None, dest="stacked_horizons",
+                        help="a further horizon whose true future cloud d2a-oracle reads beside --oracle-horizon's "
+                             "(repeatable: --stacked-horizon 1 --stacked-horizon 2 stacks H = 1, 2, 4)")
     parser.add_argument("--meanflow-output", choices=("velocity", "action"), default=None,
                         help="what a MeanFlow network outputs: the average velocity (default, as MP1) or the clean "
                              "action chunk, read as the velocity it implies")
@@ -153,10 +156,16 @@ def _add_policy_options(parser: argparse.ArgumentParser) -> None:
 
 def _with_policy_options(bench: Any, args: argparse.Namespace) -> Any:
     """A success bench's per-cell settings with the policy options given (steps, point budget,
-    oracle horizon, MeanFlow output)."""
+    oracle horizons, MeanFlow output)."""
     policy = _replace_given(bench.policy.policy, num_points=args.policy_points, imagined_points=args.imagined_points,
-                            oracle_horizon=args.oracle_horizon, meanflow_output=args.meanflow_output)
+                            oracle_horizon=args.oracle_horizon, stacked_horizons=_stacked(args),
+                            meanflow_output=args.meanflow_output)
     return dataclasses.replace(bench, policy=_replace_given(bench.policy, steps=args.steps, policy=policy))
+
+
+def _stacked(args: argparse.Namespace) -> tuple[int, ...] | None:
+    """The ``--stacked-horizon`` values as the policy setting (``None``: not given)."""
+    return tuple(args.stacked_horizons) if args.stacked_horizons else None
 
 
 def _replace_given(instance: Any, **changes: object) -> Any:
@@ -345,7 +354,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
     policy = _replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
                             n_action_steps=args.n_action_steps, num_points=args.policy_points,
                             imagined_points=args.imagined_points, oracle_horizon=args.oracle_horizon,
-                            cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
+                            stacked_horizons=_stacked(args), cfg_similarity=args.cfg_similarity, adaptive_power=args.adaptive_power,
                             cfg_guidance=args.cfg_guidance, cfg_scale=args.cfg_scale,
                             meanflow_output=args.meanflow_output,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)

@@ -306,6 +306,12 @@ def test_demos_reach_the_trainers_and_the_bench(captured):
     policy = captured["config"].policy
     assert (policy.steps, policy.policy.num_points, policy.policy.imagined_points) == (300, 128, None)
     assert policy.policy.oracle_horizon == 8
+    main(["bench", "success", "--stacked-horizon", "1", "--stacked-horizon", "2"])
+    assert captured["config"].policy.policy.stacked_horizons == (1, 2)
+    name = benchmarks.success._cell_name(captured["config"], "push", "d2a-oracle", 0)
+    assert name.endswith("_stacked_horizons1,2")  # its cells apart from the single horizon's
+    main(["train-policy", "--data", "d", "--out", "o", "--stacked-horizon", "2"])
+    assert captured["config"].policy.stacked_horizons == (2,)
     main(["bench", "success", "--meanflow-output", "action"])
     assert captured["config"].policy.policy.meanflow_output == "action"
     name = benchmarks.success._cell_name(captured["config"], "push", "mp1", 0)

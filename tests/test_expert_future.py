@@ -57,9 +57,29 @@ def test_the_future_is_the_cloud_the_expert_reaches_horizon_steps_later():
     assert not np.array_equal(futures[0], later[-1])  # the scene moves: equal clouds would prove nothing
 
 
+def test_stacked_horizons_are_the_clouds_the_expert_reaches_at_each_horizon():
+    env = ExpertFuture(gym.make(ENV_ID, **SMALL_ENV_KWARGS), horizon=4, num_points=32, stacked_horizons=(2, 1))
+    assert env.observation_space[IMAGINED_KEY].shape == (3, 32, 3)
+    expert = ENV_POLICY_MAP["push-v3"]()
+    observation, _ = env.reset(seed=7)
+    futures, clouds = [observation[IMAGINED_KEY]], [observation["point_cloud"]]
+    for _ in range(10):
+        observation, *_ = env.step(expert_action(expert, observation))
+        futures.append(observation[IMAGINED_KEY])
+        clouds.append(observation["point_cloud"])
+    sampled = [cloud[farthest_point_indices(cloud, 32)] for cloud in clouds]
+    for t in range(len(clouds) - 4):
+        for k, horizon in enumerate((1, 2, 4)):  # nearest first
+            np.testing.assert_array_equal(futures[t][k], sampled[t + horizon])
+    assert not np.array_equal(futures[0][0], futures[0][2])  # the horizons differ: equal clouds would prove nothing
+
+
 def test_the_torchrl_env_takes_the_look_ahead_as_an_option():
     env = make_torchrl_env("push", {**SMALL_ENV_KWARGS, EXPERT_FUTURE_KEY: {"horizon": 2, "num_points": 16}}, seed=0)
     assert env.rollout(2)[IMAGINED_KEY].shape == (2, 16, 3)
+    stacked = {"horizon": 2, "num_points": 16, "stacked_horizons": [1]}
+    env = make_torchrl_env("push", {**SMALL_ENV_KWARGS, EXPERT_FUTURE_KEY: stacked}, seed=0)
+    assert env.rollout(2)[IMAGINED_KEY].shape == (2, 2, 16, 3)
 
 
 def test_only_a_meta_world_env_with_its_state_can_look_ahead():

@@ -512,6 +512,27 @@ def test_the_oracle_reads_the_demonstrations_future_in_training_and_the_simulato
     assert eval_env_kwargs(payload, "reach")["expert_future"]["horizon"] == ORACLE_HORIZON
 
 
+def test_the_stacked_oracle_reads_the_future_at_every_horizon(reach_data, tmp_path):
+    from d2a_agents.policy.train import training_frames
+    from d2a_envs.wrappers import IMAGINED_KEY
+
+    config = policy_config("d2a-oracle", reach_data, tmp_path)
+    config = dataclasses.replace(config, policy=dataclasses.replace(config.policy, oracle_horizon=3,
+                                                                     stacked_horizons=(1,)))
+    frames = training_frames(DemoDataset.open(reach_data), config.policy, None, progress=False)
+    episode = np.asarray(frames["episode"])
+    last = int(np.flatnonzero(episode == episode[0])[-1])
+    assert frames[IMAGINED_KEY].shape[1:] == (2, 64, 3)
+    for row in (0, 5, last - 1):
+        for k, horizon in enumerate((1, 3)):
+            torch.testing.assert_close(frames[IMAGINED_KEY][row, k], frames["point_cloud"][min(row + horizon, last)])
+    _, history = train_policy(config)
+    assert history[0].episodes == 1  # it acted on the simulator's stacked look-ahead
+    payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
+    assert eval_env_kwargs(payload, "reach")["expert_future"] == {"horizon": 3, "num_points": 64,
+                                                                  "stacked_horizons": [1]}
+
+
 def test_the_2d_diffusion_policy_trains_on_stored_images_and_acts_on_the_envs(tmp_path):
     from collectors.collect import CollectConfig, collect
     from d2a_agents.policy.train import augment_shift_for

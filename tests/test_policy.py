@@ -173,6 +173,31 @@ def test_the_imagined_encoder_reads_the_latest_imagined_clouds(imagined_steps):
         EncoderConfig(imagined_steps=3)
 
 
+def test_stacked_oracle_horizons_are_encoded_apart_nearest_first():
+    """d2a-oracle with stacked horizons reads K clouds per observation, each through the
+    imagined-cloud encoder on its own: the condition ends with their K encodings in horizon order."""
+    policy = tiny_policy("d2a-oracle", oracle_horizon=4, stacked_horizons=(2, 1))
+    assert policy.config.oracle_horizons == (1, 2, 4) and policy.config.encoder.imagined_clouds == 3
+    encoder, embed = policy.encoder, policy.config.encoder.embed_dim
+    torch.manual_seed(0)
+    futures = torch.rand(3, 2, 3, 16, 3)
+    observation = {"point_cloud": torch.rand(3, 2, 16, 3), "agent_pos": torch.rand(3, 2, 4),
+                   "imagined_point_cloud": futures}
+    features = encoder(observation)
+    assert features.shape == (3, (2 * 2 + 3) * embed) == (3, encoder.out_dim)
+    for k in range(3):  # the latest observation's k-th cloud, encoded alone
+        alone = encoder.imagined(futures[:, -1, k])
+        torch.testing.assert_close(features[:, (4 + k) * embed:(5 + k) * embed], alone)
+    assert tiny_policy("d2a", stacked_horizons=(1,)).config.encoder.imagined_clouds == 1  # the oracle's alone
+    with pytest.raises(ValueError, match="repeat"):
+        PolicyConfig(algo="d2a-oracle", oracle_horizon=4, stacked_horizons=(4,))
+    with pytest.raises(ValueError, match="at least 1"):
+        PolicyConfig(algo="d2a-oracle", stacked_horizons=(0,))
+    raw = PolicyConfig(algo="d2a-oracle", stacked_horizons=(1, 2)).to_dict()
+    raw["stacked_horizons"] = list(raw["stacked_horizons"])  # as a checkpoint's JSON holds it
+    assert PolicyConfig.from_dict(raw) == PolicyConfig(algo="d2a-oracle", stacked_horizons=(1, 2))
+
+
 def test_a_policy_without_its_normalizers_is_refused():
     normalizers = unit_normalizers()
     del normalizers["point_cloud"]

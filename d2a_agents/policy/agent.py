@@ -30,7 +30,9 @@ second encoder reads the current cloud in place of the imagined one (no world mo
 ``d2a-oracle`` is imagination's upper bound: it reads the cloud the scene really shows
 ``oracle_horizon`` steps ahead when the expert acts (the demonstrations' own in training,
 the simulator's look-ahead, :class:`~collectors.expert_future.ExpertFuture`, in evaluation),
-the future a world model trained on those demonstrations aims at, without its errors.
+the future a world model trained on those demonstrations aims at, without its errors;
+with ``stacked_horizons`` it reads the true futures at several horizons at once (one cloud
+each through the imagined-cloud encoder, nearest first).
 
 The policy owns its normalizers (min/max to [-1, 1]: actions, the low-dimensional
 observation, and the clouds per axis, the imagined cloud with the current cloud's map) and
@@ -126,6 +128,9 @@ class PolicyConfig:
     imagined_points: int | None = None  # None: num_points
     # Steps ahead of d2a-oracle's true future cloud (other variants ignore it).
     oracle_horizon: int = ORACLE_HORIZON
+    # Further horizons whose true future clouds d2a-oracle reads beside oracle_horizon's, each
+    # through the imagined-cloud encoder: (1, 2) with oracle_horizon 4 stacks H = 1, 2, 4.
+    stacked_horizons: tuple[int, ...] = ()
     # Map clouds per axis onto [-1, 1] with the min/max of the training clouds (DP3, MP1).
     # False feeds raw metres (an ablation: the encoder then barely sees a 10 cm move).
     normalize_clouds: bool = True
@@ -162,14 +167,19 @@ class PolicyConfig:
                              f"{self.imagined_points}")
         if self.n_action_steps < 1:
             raise ValueError(f"n_action_steps must be at least 1, not {self.n_action_steps}")
-        if self.oracle_horizon < 1:
-            raise ValueError(f"oracle_horizon must be at least 1, not {self.oracle_horizon}")
+        object.__setattr__(self, "stacked_horizons", tuple(self.stacked_horizons))  # a list from a checkpoint's JSON
+        if min((self.oracle_horizon, *self.stacked_horizons)) < 1:
+            raise ValueError(f"oracle horizons must be at least 1, not {(self.oracle_horizon, *self.stacked_horizons)}")
+        if len(set(self.oracle_horizons)) != 1 + len(self.stacked_horizons):
+            raise ValueError(f"stacked_horizons {self.stacked_horizons} repeat a horizon (oracle_horizon "
+                             f"{self.oracle_horizon})")
         variant = self.variant
         state = variant.observation == "state"
         encoder = dataclasses.replace(
             self.encoder, n_obs_steps=self.n_obs_steps, use_imagination=variant.imagination != "none",
             use_cloud=variant.observation == "cloud", use_image=variant.observation == "image",
             state_key="state" if state else "agent_pos",
+            imagined_clouds=len(self.oracle_horizons) if variant.imagination == "oracle" else 1,
         )
         object.__setattr__(self, "encoder", encoder)
         # The time scale belongs to the algorithm: DDPM's 1000 for diffusion (EDM's ln(sigma) / 4
@@ -180,6 +190,11 @@ class PolicyConfig:
     @property
     def variant(self) -> Variant:
         return VARIANTS[self.algo]
+
+    @property
+    def oracle_horizons(self) -> tuple[int, ...]:
+        """Steps ahead of each true future cloud ``d2a-oracle`` reads, nearest first."""
+        return tuple(sorted((self.oracle_horizon, *self.stacked_horizons)))
 
     @property
     def imagined_point_count(self) -> int:

@@ -107,6 +107,8 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
     policy = PolicyConfig.from_dict(payload["policy_config"])
     if policy.variant.imagination == "oracle":
         kwargs[EXPERT_FUTURE_KEY] = {"horizon": policy.oracle_horizon, "num_points": policy.imagined_point_count}
+        if policy.stacked_horizons:
+            kwargs[EXPERT_FUTURE_KEY]["stacked_horizons"] = list(policy.stacked_horizons)
     world_model = payload["world_model"]
     if world_model is not None:
         if not Path(world_model).is_file():

@@ -53,6 +53,9 @@ class EncoderConfig:
     # Imagined clouds read, from the latest observation backwards: the paper conditions on one
     # imagined cloud, P_{t+H} (1); n_obs_steps reads every observation's (a cloud encoding each).
     imagined_steps: int = 1
+    # Clouds per imagined observation, each encoded apart by the imagined-cloud encoder
+    # (d2a-oracle's true futures at several horizons, stacked_horizons); 1: one cloud.
+    imagined_clouds: int = 1
 
     def __post_init__(self) -> None:
         if self.point_dtype not in POINT_DTYPES:
@@ -60,6 +63,8 @@ class EncoderConfig:
         if not 1 <= self.imagined_steps <= self.n_obs_steps:
             raise ValueError(f"imagined_steps must be in 1..n_obs_steps ({self.n_obs_steps}), "
                              f"got {self.imagined_steps}")
+        if self.imagined_clouds < 1:
+            raise ValueError(f"imagined_clouds must be at least 1, not {self.imagined_clouds}")
 
 
 @dataclass(frozen=True)
@@ -103,8 +108,8 @@ class ObservationEncoder(nn.Module):
 
     Input: a mapping with ``point_cloud`` (B, n_obs, N, 3) when ``use_cloud``, ``image``
     (B, n_obs, H, W, 3) when ``use_image``, the ``state_key`` observation (B, n_obs, D) and, when
-    ``use_imagination``, ``imagined_point_cloud`` (B, n_obs, N, 3), of which the last
-    ``imagined_steps`` are read.
+    ``use_imagination``, ``imagined_point_cloud`` (B, n_obs, N, 3), or (B, n_obs, K, N, 3)
+    with ``imagined_clouds`` K > 1, of which the last ``imagined_steps`` are read.
     """
 
     def __init__(self, config: EncoderConfig, state_dim: int) -> None:
@@ -124,7 +129,7 @@ class ObservationEncoder(nn.Module):
         self.state = nn.Sequential(
             nn.Linear(state_dim, config.state_hidden), nn.ReLU(), nn.Linear(config.state_hidden, config.embed_dim)
         )
-        imagined = config.imagined_steps if config.use_imagination else 0
+        imagined = config.imagined_steps * config.imagined_clouds if config.use_imagination else 0
         per_step = 1 + int(config.use_cloud) + int(config.use_image)
         self.out_dim = (config.n_obs_steps * per_step + imagined) * config.embed_dim
 

@@ -219,7 +219,7 @@ def training_frames(
 ) -> TensorDict:
     """In-memory frames for the windows: the observations the policy reads (clouds
     subsampled to ``config.num_points`` by FPS, images as stored) and, for imagination variants, the world
-    model's imagined cloud of every step (``d2a-oracle``'s true future cloud, ``d2a-present``'s own
+    model's imagined cloud of every step (``d2a-oracle``'s true future cloud, one per horizon, ``d2a-present``'s own
     copy of the present), at ``config.imagined_point_count``."""
     frames = dataset.frames()
     state_key = config.encoder.state_key
@@ -245,8 +245,11 @@ def training_frames(
         count = config.imagined_point_count
         clouds = data["point_cloud"] if count == config.num_points else torch.stack(
             [subsample_cloud(c, count) for c in torch.as_tensor(frames["point_cloud"])])
-        oracle = config.variant.imagination == "oracle"  # the demonstration's own cloud oracle_horizon steps ahead
-        data[IMAGINED_KEY] = clouds[future_rows(frames, config.oracle_horizon)] if oracle else clouds
+        if config.variant.imagination != "oracle":
+            data[IMAGINED_KEY] = clouds
+        else:  # the demonstration's own clouds oracle_horizons steps ahead: (T, N, 3), or (T, K, N, 3) stacked
+            futures = [clouds[future_rows(frames, horizon)] for horizon in config.oracle_horizons]
+            data[IMAGINED_KEY] = futures[0] if len(futures) == 1 else torch.stack(futures, 1)
     return TensorDict(data, batch_size=[len(data["action"])])
 
 
