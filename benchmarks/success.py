@@ -58,6 +58,7 @@ from collectors.atomic import DirectoryBusyError, atomic_write_text, exclusive_w
 from collectors.collect import CollectConfig, collect, dart_tag
 from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
+from d2a_agents.checkpoint import load_checkpoint
 from d2a_agents.policy.agent import reads_images, uses_imagination
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, Acting, evaluate_checkpoint
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
@@ -158,8 +159,9 @@ class Cell:
     ``periodic``: success rate of each evaluation during training, in order (the last one is
     of the final checkpoint). ``final_wins`` / ``final_episodes``: the final checkpoint's
     evaluation (the extra one when ``final_episodes`` > 0, else the last periodic one).
-    ``train_seconds``: wall time of the training call that finished the run (shorter when
-    it resumed an interrupted run), periodic evaluations included; ``final_seconds``: the
+    ``train_seconds``: wall time of the training, periodic evaluations included, summed over
+    the calls of a run resumed after interruptions (cells of runs whose checkpoints predate
+    that sum hold only the last call's); ``final_seconds``: the
     final evaluation's (``None`` in cells stored before it was recorded). ``demos``: the
     demonstrations it trained on (cells stored before it was recorded trained on 10).
     """
@@ -285,16 +287,18 @@ def run_cell(
     started = time.perf_counter()
     train = _train_config(config, task, algo, seed, data, world_model, device, workers, teacher)
     _, history = train_policy(train)
-    train_seconds = time.perf_counter() - started
+    call_seconds = time.perf_counter() - started
+    checkpoint = Path(train.out) / CHECKPOINT_NAME
+    train_seconds = load_checkpoint(checkpoint, "policy").get("wall_seconds") or call_seconds
     if config.final_episodes:
-        final = evaluate_checkpoint(Path(train.out) / CHECKPOINT_NAME, task, config.final_episodes, config.final_seed,
+        final = evaluate_checkpoint(checkpoint, task, config.final_episodes, config.final_seed,
                                     workers=workers, end_on_success=True, progress=train.progress,
                                     acting=Acting(action_draws=config.action_draws))
         wins, episodes = sum(final.successes), final.episodes
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes
     return Cell(task, algo, seed, [point.success_rate for point in history], wins, episodes, train_seconds,
-                time.perf_counter() - started - train_seconds, config.demos)
+                time.perf_counter() - started - call_seconds, config.demos)
 
 
 def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> str:

@@ -53,6 +53,8 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
     assert cell.final_wins == round(cell.periodic[-1])  # the last periodic evaluation is the final checkpoint's
     stored = json.loads(bench.cell_path(config, "reach", "mp1", 0).read_text())
     assert stored["periodic"] == cell.periodic
+    trained = tmp_path / "runs" / bench._cell_name(config, "reach", "mp1", 0) / "policy.pt"
+    assert cell.train_seconds == load_checkpoint(trained, "policy")["wall_seconds"]  # summed over resumed calls
     assert (tmp_path / "success.png").stat().st_size > 0
     # A cell on the first demonstration of the pool of two: named apart, trained on episode 0 only.
     (one,) = bench.run(dataclasses.replace(config, demos=1, pool=2))

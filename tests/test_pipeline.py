@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ import torch
 
 from collectors.evaluation import evaluate
 from collectors.storage import DatasetError, DemoDataset
-from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint
+from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint, save_checkpoint
 from d2a_agents.policy.agent import PolicyConfig
 from d2a_agents.policy.checkpoints import (
     CHECKPOINT_NAME,
@@ -184,10 +185,19 @@ def test_zero_evaluation_episodes_train_without_evaluating(reach_data, tmp_path)
 
 
 def test_training_resumes_from_its_checkpoint(reach_data, tmp_path):
+    started = time.perf_counter()
     train_policy(policy_config("mp1", reach_data, tmp_path, steps=2))
+    first_call = time.perf_counter() - started
+    payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
+    assert 0 < payload["wall_seconds"] <= first_call
+    earlier = 1000.0  # as if the first call had run that long: the resumed run must add to it
+    save_checkpoint(tmp_path / CHECKPOINT_NAME, "policy", {**payload, "wall_seconds": earlier})
     first, _ = load_policy(tmp_path / CHECKPOINT_NAME)
+    started = time.perf_counter()
     _, history = train_policy(policy_config("mp1", reach_data, tmp_path, steps=4))
+    second_call = time.perf_counter() - started
     assert load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["step"] == 4
+    assert earlier < load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["wall_seconds"] <= earlier + second_call
     metrics = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["metrics"]
     assert [row["step"] for row in metrics] == [1, 2, 3, 4]  # 2 before + 2 after resuming
     resumed, _ = load_policy(tmp_path / CHECKPOINT_NAME)

@@ -391,6 +391,7 @@ def train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoin
 
 
 def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoint]]:
+    call_started = time.perf_counter()  # the checkpoint's wall_seconds: this call's time plus the earlier calls'
     if config.threads:
         torch.set_num_threads(config.threads)
     device = torch.device(config.device)
@@ -449,7 +450,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
         "run_config": {k: v for k, v in dataclasses.asdict(config).items()
                        if k not in RESUMABLE_CHANGES and k != "policy"},
     }
-    start, history, metrics, reliances = 0, [], [], []
+    start, history, metrics, reliances, earlier_seconds = 0, [], [], [], 0.0
     previous = load_for_resume(path, CHECKPOINT_KIND, static, ("policy_config", "world_model", "tasks", "run_config"))
     if previous is not None:
         policy.load_state_dict(previous["model"])
@@ -459,12 +460,14 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
         generator.set_state(previous["generator"])
         start, history = previous["step"], [EvaluationPoint(**point) for point in previous["history"]]
         metrics, reliances = previous.get("metrics", []), previous.get("reliance", [])
+        earlier_seconds = previous.get("wall_seconds", 0.0)  # 0 in a checkpoint written before it was kept
 
     def checkpoint(step: int) -> None:
         save_checkpoint(path, CHECKPOINT_KIND, {
             **static, "model": policy.state_dict(), "ema": ema.state_dict(), "optimizer": optimizer.state_dict(),
             "scheduler": scheduler.state_dict(), "generator": generator.get_state(), "step": step,
             "history": [dataclasses.asdict(point) for point in history], "metrics": metrics, "reliance": reliances,
+            "wall_seconds": earlier_seconds + time.perf_counter() - call_started,
         })
 
     logger = get_logger(config.logger, logger_name=str(out / "logs"), experiment_name=config.policy.algo) \
