@@ -70,8 +70,8 @@ class ExpertFuture(gym.Wrapper, gym.utils.RecordConstructorArgs):
         future_space = point_cloud_space(dataclasses.replace(self._clouds.config, num_points=self.num_points))
         if self.stacked:
             shape = (len(self.horizons), *future_space.shape)
-            future_space = spaces.Box(np.broadcast_to(future_space.low, shape), np.broadcast_to(future_space.high, shape),
-                                      shape, np.float32)
+            low, high = (np.broadcast_to(bound, shape) for bound in (future_space.low, future_space.high))
+            future_space = spaces.Box(low, high, shape, np.float32)
         self.observation_space = spaces.Dict({**env.observation_space.spaces, IMAGINED_KEY: future_space})
 
     def future_cloud(self, state: np.ndarray) -> np.ndarray:

@@ -41,36 +41,34 @@ def test_the_look_ahead_leaves_the_episode_untouched():
         assert looked[IMAGINED_KEY].shape == (32, 3) and looking.observation_space[IMAGINED_KEY].shape == (32, 3)
 
 
-def test_the_future_is_the_cloud_the_expert_reaches_horizon_steps_later():
-    horizon = 3
-    env = ExpertFuture(gym.make(ENV_ID, **SMALL_ENV_KWARGS), horizon=horizon, num_points=32)
+def expert_episode(env: ExpertFuture, steps: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The look-ahead clouds and the clouds observed (FPS-sampled as the look-ahead samples) at
+    every step of an episode the scripted expert drives (seed 7)."""
     expert = ENV_POLICY_MAP["push-v3"]()
     observation, _ = env.reset(seed=7)
     futures, clouds = [observation[IMAGINED_KEY]], [observation["point_cloud"]]
-    for _ in range(12):
+    for _ in range(steps):
         observation, *_ = env.step(expert_action(expert, observation))
         futures.append(observation[IMAGINED_KEY])
         clouds.append(observation["point_cloud"])
-    later = [cloud[farthest_point_indices(cloud, 32)] for cloud in clouds[horizon:]]
-    for future, seen in zip(futures, later, strict=False):
-        np.testing.assert_array_equal(future, seen)
-    assert not np.array_equal(futures[0], later[-1])  # the scene moves: equal clouds would prove nothing
+    return futures, [cloud[farthest_point_indices(cloud, env.num_points)] for cloud in clouds]
+
+
+def test_the_future_is_the_cloud_the_expert_reaches_horizon_steps_later():
+    horizon = 3
+    futures, seen = expert_episode(ExpertFuture(gym.make(ENV_ID, **SMALL_ENV_KWARGS), horizon, num_points=32), 12)
+    for t in range(len(seen) - horizon):
+        np.testing.assert_array_equal(futures[t], seen[t + horizon])
+    assert not np.array_equal(futures[0], seen[-1])  # the scene moves: equal clouds would prove nothing
 
 
 def test_stacked_horizons_are_the_clouds_the_expert_reaches_at_each_horizon():
     env = ExpertFuture(gym.make(ENV_ID, **SMALL_ENV_KWARGS), horizon=4, num_points=32, stacked_horizons=(2, 1))
     assert env.observation_space[IMAGINED_KEY].shape == (3, 32, 3)
-    expert = ENV_POLICY_MAP["push-v3"]()
-    observation, _ = env.reset(seed=7)
-    futures, clouds = [observation[IMAGINED_KEY]], [observation["point_cloud"]]
-    for _ in range(10):
-        observation, *_ = env.step(expert_action(expert, observation))
-        futures.append(observation[IMAGINED_KEY])
-        clouds.append(observation["point_cloud"])
-    sampled = [cloud[farthest_point_indices(cloud, 32)] for cloud in clouds]
-    for t in range(len(clouds) - 4):
+    futures, seen = expert_episode(env, 10)
+    for t in range(len(seen) - 4):
         for k, horizon in enumerate((1, 2, 4)):  # nearest first
-            np.testing.assert_array_equal(futures[t][k], sampled[t + horizon])
+            np.testing.assert_array_equal(futures[t][k], seen[t + horizon])
     assert not np.array_equal(futures[0][0], futures[0][2])  # the horizons differ: equal clouds would prove nothing
 
 
