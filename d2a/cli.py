@@ -355,8 +355,8 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
                             n_action_steps=args.n_action_steps, num_points=args.policy_points,
                             imagined_points=args.imagined_points, oracle_horizon=args.oracle_horizon,
                             stacked_horizons=_stacked(args), cfg_similarity=args.cfg_similarity,
-                            adaptive_power=args.adaptive_power, cfg_guidance=args.cfg_guidance, cfg_scale=args.cfg_scale,
-                            meanflow_output=args.meanflow_output,
+                            adaptive_power=args.adaptive_power, cfg_guidance=args.cfg_guidance,
+                            cfg_scale=args.cfg_scale, meanflow_output=args.meanflow_output,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)
     config = _replace_given(
         TrainPolicyConfig.from_preset(preset, data=args.data, out=args.out, policy=policy,
