@@ -167,7 +167,6 @@ class PolicyConfig:
                              f"{self.imagined_points}")
         if self.n_action_steps < 1:
             raise ValueError(f"n_action_steps must be at least 1, not {self.n_action_steps}")
-        object.__setattr__(self, "stacked_horizons", tuple(self.stacked_horizons))  # a list from a checkpoint's JSON
         if min((self.oracle_horizon, *self.stacked_horizons)) < 1:
             raise ValueError(f"oracle horizons must be at least 1, not {(self.oracle_horizon, *self.stacked_horizons)}")
         if len(set(self.oracle_horizons)) != 1 + len(self.stacked_horizons):
@@ -235,7 +234,9 @@ class PolicyConfig:
     @classmethod
     def from_dict(cls, raw: dict) -> PolicyConfig:
         encoder, network = EncoderConfig(**raw["encoder"]), VelocityNetConfig(**raw["network"])
-        return cls(**{**raw, "encoder": encoder, "network": network, "cfg_thresholds": tuple(raw["cfg_thresholds"])})
+        tuples = {"cfg_thresholds": tuple(raw["cfg_thresholds"]),  # lists in a checkpoint's JSON
+                  "stacked_horizons": tuple(raw.get("stacked_horizons", ()))}
+        return cls(**{**raw, "encoder": encoder, "network": network, **tuples})
 
 
 # What fits a 2-core CPU: 64 points into the encoders (as ManiFlow on Meta-World), a
