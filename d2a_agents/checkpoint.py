@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -46,19 +47,24 @@ def load_checkpoint(path: str | Path, kind: str) -> dict[str, Any]:
 
 
 def load_for_resume(
-    path: str | Path, kind: str, expected: dict[str, Any], keys: tuple[str, ...]
+    path: str | Path, kind: str, expected: dict[str, Any], keys: tuple[str, ...],
+    upgrades: Mapping[str, Callable[[Any], Any]] | None = None,
 ) -> dict[str, Any] | None:
     """The checkpoint to resume from, or ``None`` when there is none yet.
 
     Refuses one whose ``keys`` differ from ``expected`` (another model, grid, task list...):
     resuming it would silently mix two runs. In a dict, a name the checkpoint lacks counts as
     off: a setting added after it was written, left at ``None`` or ``False``, does what older code did.
+    ``upgrades`` reads an older entry as today's code would (e.g. a config parsed back through
+    its dataclass, so that settings added since take their defaults) before it is compared.
     """
     if not Path(path).exists():
         return None
     previous = load_checkpoint(path, kind)
     for key in keys:
         old, new = previous.get(key), expected[key]
+        if upgrades and key in upgrades and old is not None:
+            old = upgrades[key](old)
         if isinstance(old, dict) and isinstance(new, dict):
             old = {**{name: value if value is False else None for name, value in new.items()}, **old}
         if old != new:

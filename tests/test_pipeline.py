@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import shutil
 import time
@@ -202,6 +203,24 @@ def test_training_resumes_from_its_checkpoint(reach_data, tmp_path):
     assert [row["step"] for row in metrics] == [1, 2, 3, 4]  # 2 before + 2 after resuming
     resumed, _ = load_policy(tmp_path / CHECKPOINT_NAME)
     assert not torch.equal(first.net.input.weight, resumed.net.input.weight)
+
+
+def test_a_checkpoint_written_before_a_policy_setting_existed_resumes(reach_data, tmp_path):
+    """Settings added later (here the stacked horizons and the encoder's count of imagined
+    clouds) are absent from an older checkpoint; at their defaults they do what older code
+    did, so the run resumes. A setting that differs from the checkpoint's is still refused."""
+    train_policy(policy_config("mp1", reach_data, tmp_path, steps=2))
+    payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
+    older = copy.deepcopy(payload["policy_config"])
+    del older["stacked_horizons"], older["encoder"]["imagined_clouds"]
+    save_checkpoint(tmp_path / CHECKPOINT_NAME, "policy", {**payload, "policy_config": older})
+    train_policy(policy_config("mp1", reach_data, tmp_path, steps=4))
+    assert load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")["step"] == 4
+    wider = copy.deepcopy(older)
+    wider["encoder"]["embed_dim"] += 1
+    save_checkpoint(tmp_path / CHECKPOINT_NAME, "policy", {**payload, "policy_config": wider})
+    with pytest.raises(CheckpointError, match="embed_dim"):
+        train_policy(policy_config("mp1", reach_data, tmp_path, steps=6))
 
 
 def test_a_checkpoint_acts_with_other_actions_per_plan_draws_and_sample_steps(reach_data, tmp_path):

@@ -451,7 +451,8 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
                        if k not in RESUMABLE_CHANGES and k != "policy"},
     }
     start, history, metrics, reliances, earlier_seconds = 0, [], [], [], 0.0
-    previous = load_for_resume(path, CHECKPOINT_KIND, static, ("policy_config", "world_model", "tasks", "run_config"))
+    previous = load_for_resume(path, CHECKPOINT_KIND, static, ("policy_config", "world_model", "tasks", "run_config"),
+                               upgrades={"policy_config": lambda raw: PolicyConfig.from_dict(raw).to_dict()})
     if previous is not None:
         policy.load_state_dict(previous["model"])
         ema.load_state_dict(previous["ema"])
