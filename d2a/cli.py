@@ -530,6 +530,13 @@ def cmd_bench_table4(args: argparse.Namespace) -> None:
                        results=args.results, bench=_grid_cells(base.bench, args)), report_only=args.report)
 
 
+def cmd_bench_paired(args: argparse.Namespace) -> None:
+    from benchmarks.paired import PairedConfig, run
+
+    run(_replace_given(PairedConfig(results=tuple(args.results)), algo=args.algo, control=args.control,
+                       plot=args.plot))
+
+
 def cmd_bench_ray(args: argparse.Namespace) -> None:
     from benchmarks.ray_scaling import RayScalingConfig, run
 
@@ -931,6 +938,15 @@ def build_parser() -> argparse.ArgumentParser:
                               help="default: mp1 d2a d2a-present")
     _add_grid_options(bench_table4, "docs/table4", "outputs/table4")
     bench_table4.set_defaults(func=cmd_bench_table4)
+
+    bench_paired = bench.add_parser("paired", help="one method against another on the cells they share (same task, "
+                                                   "seed, settings, layouts): per pair and over pairs, intervals")
+    bench_paired.add_argument("--results", action="append", required=True,
+                              help="a directory of cells, or a grid's results holding cells/ (repeatable)")
+    bench_paired.add_argument("--algo", choices=ALGOS, default=None, help="default: d2a")
+    bench_paired.add_argument("--control", choices=ALGOS, default=None, help="default: d2a-present")
+    bench_paired.add_argument("--plot", default=None, help="a PNG of the per-pair differences (default: none)")
+    bench_paired.set_defaults(func=cmd_bench_paired)
 
     bench_ray = bench.add_parser("ray", help="the same small bench success grid on 1 and 2 Ray CPUs: wall time")
     bench_ray.add_argument("--task", default=None, help="default: reach")

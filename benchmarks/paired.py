@@ -1,0 +1,194 @@
+"""Two methods compared on the cells they share: does ``algo`` beat ``control`` on the same
+task, demonstrations, training seed, settings and evaluation layouts?
+
+A grid's cells are files named ``<task>_<algo>_s<seed>_<settings>.json``; two cells pair when
+their names differ only in the method. Each pair gives a difference in final-checkpoint
+success. Over the pairs: wins / ties / losses, the mean difference with a Student-t interval
+(the pairs are the units, so seed-to-seed spread counts), and the pooled episodes' difference
+with Newcombe's hybrid score interval (it treats the two methods' episodes as independent;
+they share their layouts, so it is conservative).
+
+Example::
+
+    d2a bench paired --results docs/table1/points128 --results docs/table4/points128 \\
+        --algo d2a --control d2a-present --plot outputs/paired.png
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+
+from scipy.stats import t as student_t
+
+from benchmarks.success import Cell, read_cell
+from collectors.evaluation import wilson_interval
+
+
+@dataclass(frozen=True)
+class PairedConfig:
+    results: tuple[str, ...]  # directories of cells (or of a grid's report, holding cells/)
+    algo: str = "d2a"
+    control: str = "d2a-present"
+    plot: str | None = None  # where to draw the per-pair differences (none: no plot)
+
+    def __post_init__(self) -> None:
+        if not self.results:
+            raise ValueError("give at least one directory of cells")
+        if self.algo == self.control:
+            raise ValueError(f"--algo and --control are both {self.algo!r}: nothing to compare")
+
+
+@dataclass(frozen=True)
+class Pair:
+    """Two cells of one task, seed and settings, one per method; ``name``: the cell name less the method."""
+
+    name: str
+    treated: Cell
+    control: Cell
+
+    @property
+    def difference(self) -> float:
+        return self.treated.honest - self.control.honest
+
+
+@dataclass(frozen=True)
+class PairedSummary:
+    """Differences are ``algo`` minus ``control`` in final-checkpoint success (fractions)."""
+
+    pairs: int
+    wins: int
+    ties: int
+    losses: int
+    mean: float
+    low: float  # Student-t 95 % interval of the mean over pairs (nan with one pair)
+    high: float
+    pooled_treated: float
+    pooled_control: float
+    pooled_low: float  # Newcombe's hybrid score 95 % interval of the pooled difference
+    pooled_high: float
+
+
+def cell_files(directory: str | Path) -> list[Path]:
+    """The cell files of a directory of cells or of a grid report's directory (``<dir>/cells``)."""
+    directory = Path(directory)
+    cells = directory / "cells" if (directory / "cells").is_dir() else directory
+    if not cells.is_dir():
+        raise ValueError(f"no directory of cells at {directory}")
+    return sorted(cells.glob("*.json"))
+
+
+def find_pairs(files: list[Path], algo: str, control: str) -> list[Pair]:
+    """Every ``algo`` cell whose ``control`` twin (same name, the other method) is among ``files``
+    (the cells of one directory: names are unique there)."""
+    by_name = {path.stem: path for path in files}
+    pairs = []
+    for stem, path in by_name.items():
+        task, method, rest = _split(stem)
+        twin = by_name.get(f"{task}_{control}_{rest}")
+        if method == algo and twin is not None:
+            pairs.append(Pair(f"{task}_{rest}", read_cell(path), read_cell(twin)))
+    return pairs
+
+
+def _split(stem: str) -> tuple[str, str, str]:
+    """(task, method, the rest) of a cell name ``<task>_<method>_<rest>``."""
+    parts = stem.split("_", 2)
+    return (parts[0], parts[1], parts[2]) if len(parts) == 3 else (stem, "", "")
+
+
+def newcombe_interval(wins_a: int, trials_a: int, wins_b: int, trials_b: int) -> tuple[float, float]:
+    """95 % interval of the difference of two independent proportions, a - b: Newcombe's
+    hybrid score method (his method 10), built from each proportion's Wilson interval."""
+    rate_a, rate_b = wins_a / trials_a, wins_b / trials_b
+    (low_a, high_a), (low_b, high_b) = wilson_interval(wins_a, trials_a), wilson_interval(wins_b, trials_b)
+    difference = rate_a - rate_b
+    return (difference - math.hypot(rate_a - low_a, high_b - rate_b),
+            difference + math.hypot(high_a - rate_a, rate_b - low_b))
+
+
+def summarize_pairs(pairs: list[Pair]) -> PairedSummary:
+    if not pairs:
+        raise ValueError("no pairs to summarise")
+    differences = [pair.difference for pair in pairs]
+    mean = statistics.fmean(differences)
+    if len(pairs) > 1:
+        half = student_t.ppf(0.975, len(pairs) - 1) * statistics.stdev(differences) / math.sqrt(len(pairs))
+    else:
+        half = math.nan
+    wins = [sum(pair.treated.final_wins for pair in pairs), sum(pair.control.final_wins for pair in pairs)]
+    episodes = [sum(pair.treated.final_episodes for pair in pairs), sum(pair.control.final_episodes for pair in pairs)]
+    pooled_low, pooled_high = newcombe_interval(wins[0], episodes[0], wins[1], episodes[1])
+    return PairedSummary(
+        pairs=len(pairs), wins=sum(d > 0 for d in differences), ties=sum(d == 0 for d in differences),
+        losses=sum(d < 0 for d in differences), mean=mean, low=mean - half, high=mean + half,
+        pooled_treated=wins[0] / episodes[0], pooled_control=wins[1] / episodes[1],
+        pooled_low=pooled_low, pooled_high=pooled_high,
+    )
+
+
+def report(pairs: list[Pair], config: PairedConfig) -> str:
+    """Markdown: one row per pair, then the summary over them."""
+    a, b = f"`{config.algo}`", f"`{config.control}`"
+    lines = [f"{a} against {b} on the cells they share (final checkpoint; same task, demonstrations, "
+             "seed, settings and layouts)", "",
+             f"| cell | {a} | {b} | difference (points) |", "| --- | --- | --- | --- |"]
+    for pair in pairs:
+        lines.append(f"| {pair.name} | {pair.treated.final_wins}/{pair.treated.final_episodes} | "
+                     f"{pair.control.final_wins}/{pair.control.final_episodes} | {100 * pair.difference:+.0f} |")
+    summary = summarize_pairs(pairs)
+    interval = (f"[{100 * summary.low:+.1f}, {100 * summary.high:+.1f}] (Student t over pairs)"
+                if summary.pairs > 1 else "(one pair: no interval)")
+    lines += ["", f"{summary.pairs} pairs: {a} ahead in {summary.wins}, level in {summary.ties}, behind in "
+              f"{summary.losses}; mean difference {100 * summary.mean:+.1f} points {interval}; pooled episodes "
+              f"{100 * summary.pooled_treated:.1f} % against {100 * summary.pooled_control:.1f} %, difference "
+              f"{100 * (summary.pooled_treated - summary.pooled_control):+.1f} "
+              f"[{100 * summary.pooled_low:+.1f}, {100 * summary.pooled_high:+.1f}] (Newcombe)."]
+    return "\n".join(lines)
+
+
+def plot(pairs: list[Pair], config: PairedConfig, path: str | Path) -> Path:
+    """Each pair's difference as a dot with its own Newcombe interval, and the mean over pairs
+    with its t interval; zero marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    summary = summarize_pairs(pairs)
+    figure, axes = plt.subplots(figsize=(7, 1.2 + 0.32 * (len(pairs) + 1)))
+    for row, pair in enumerate(pairs):
+        low, high = newcombe_interval(pair.treated.final_wins, pair.treated.final_episodes,
+                                      pair.control.final_wins, pair.control.final_episodes)
+        below, above = 100 * (pair.difference - low), 100 * (high - pair.difference)
+        axes.errorbar(100 * pair.difference, row, xerr=[[below], [above]], fmt="o", color="tab:blue", capsize=2)
+    mean_row = len(pairs)
+    if summary.pairs > 1:
+        axes.errorbar(100 * summary.mean, mean_row, xerr=[[100 * (summary.mean - summary.low)],
+                                                          [100 * (summary.high - summary.mean)]],
+                      fmt="D", color="black", capsize=3)
+    else:
+        axes.plot(100 * summary.mean, mean_row, "D", color="black")
+    axes.axvline(0, color="grey", linewidth=0.8)
+    axes.set_yticks(range(len(pairs) + 1), [pair.name for pair in pairs] + ["mean over pairs"], fontsize=7)
+    axes.invert_yaxis()
+    axes.set_xlabel(f"{config.algo} minus {config.control}, final-checkpoint success (points)")
+    figure.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+    return path
+
+
+def run(config: PairedConfig) -> list[Pair]:
+    pairs = [pair for directory in config.results
+             for pair in find_pairs(cell_files(directory), config.algo, config.control)]
+    if not pairs:
+        raise ValueError(f"no {config.algo} cell in {', '.join(config.results)} has a {config.control} twin")
+    print(report(pairs, config))
+    if config.plot:
+        print(f"plot: {plot(pairs, config, config.plot)}")
+    return pairs

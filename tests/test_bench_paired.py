@@ -1,0 +1,77 @@
+"""The paired comparison: which cells pair, and its intervals against published and hand computations."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+
+from benchmarks.paired import PairedConfig, cell_files, find_pairs, newcombe_interval, summarize_pairs
+from benchmarks.success import Cell
+from d2a.cli import main
+
+
+def _write(directory, name: str, wins: int, episodes: int = 100) -> None:
+    task, algo, rest = name.split("_", 2)
+    cell = Cell(task, algo, int(rest.split("_")[0][1:]), [wins / episodes], wins, episodes, train_seconds=1.0)
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / f"{name}.json").write_text(json.dumps(dataclasses.asdict(cell)))
+
+
+@pytest.mark.parametrize("a, n_a, b, n_b, expected", [
+    # Newcombe (1998), Statistics in Medicine 17: 873-890, Table II, method 10.
+    (56, 70, 48, 80, (0.0524, 0.3339)),
+    (9, 10, 3, 10, (0.1705, 0.8090)),
+    (10, 10, 0, 20, (0.6791, 1.0000)),
+])
+def test_newcombe_interval_matches_the_published_examples(a, n_a, b, n_b, expected):
+    low, high = newcombe_interval(a, n_a, b, n_b)
+    assert (round(low, 4), round(high, 4)) == expected
+
+
+def test_only_cells_of_the_same_task_seed_and_settings_pair(tmp_path):
+    cells = tmp_path / "grid" / "cells"
+    _write(cells, "push_d2a_s0_e5_fresh_d5", 70)
+    _write(cells, "push_d2a-present_s0_e5_fresh_d5", 60)
+    _write(cells, "push_d2a_s1_e5_fresh_d5", 80)  # no control on seed 1
+    _write(cells, "push_d2a-present_s1_e5_fresh_d5_num_points128", 50)  # another budget
+    _write(cells, "push_mp1_s0_e5_fresh_d5", 90)  # another method
+    _write(cells, "stick-pull_d2a-present_s0_e5_fresh_d5", 40)  # another task
+    pairs = find_pairs(cell_files(tmp_path / "grid"), "d2a", "d2a-present")
+    assert [(pair.name, pair.treated.final_wins, pair.control.final_wins) for pair in pairs] == \
+        [("push_s0_e5_fresh_d5", 70, 60)]
+    assert cell_files(cells) == cell_files(tmp_path / "grid")  # the report's directory or its cells/
+
+
+def test_summary_over_pairs_against_a_hand_computation(tmp_path):
+    for seed, (treated, control) in enumerate([(70, 60), (50, 55), (90, 75)]):
+        _write(tmp_path, f"push_d2a_s{seed}_e5", treated)
+        _write(tmp_path, f"push_d2a-present_s{seed}_e5", control)
+    summary = summarize_pairs(find_pairs(cell_files(tmp_path), "d2a", "d2a-present"))
+    # Differences 0.10, -0.05, 0.15: mean 0.0667, sample sd 0.1041; t(0.975, 2 df) = 4.3027.
+    half = 4.302652729911275 * math.sqrt(((0.1 - 0.2 / 3) ** 2 + (-0.05 - 0.2 / 3) ** 2 + (0.15 - 0.2 / 3) ** 2) / 2) \
+        / math.sqrt(3)
+    assert (summary.pairs, summary.wins, summary.ties, summary.losses) == (3, 2, 0, 1)
+    assert summary.mean == pytest.approx(0.2 / 3)
+    assert (summary.low, summary.high) == pytest.approx((0.2 / 3 - half, 0.2 / 3 + half))
+    assert (summary.pooled_treated, summary.pooled_control) == pytest.approx((210 / 300, 190 / 300))
+    assert (summary.pooled_low, summary.pooled_high) == pytest.approx(newcombe_interval(210, 300, 190, 300))
+
+
+def test_cli_prints_the_pairs_and_draws_them(tmp_path, capsys):
+    _write(tmp_path / "a", "push_d2a_s0_e5", 70)
+    _write(tmp_path / "a", "push_d2a-present_s0_e5", 60)
+    _write(tmp_path / "b", "push_d2a-present_s0_e5", 10)  # a twin only in another directory: no pair
+    main(["bench", "paired", "--results", str(tmp_path / "a"), "--results", str(tmp_path / "b"),
+          "--plot", str(tmp_path / "paired.png")])
+    out = capsys.readouterr().out
+    assert "| push_s0_e5 | 70/100 | 60/100 | +10 |" in out and "1 pairs:" in out
+    assert (tmp_path / "paired.png").stat().st_size > 0
+    with pytest.raises(SystemExit, match="has a mp1 twin"):
+        main(["bench", "paired", "--results", str(tmp_path / "a"), "--control", "mp1"])
+    with pytest.raises(SystemExit, match="no directory of cells"):
+        main(["bench", "paired", "--results", str(tmp_path / "missing")])
+    with pytest.raises(ValueError, match="nothing to compare"):
+        PairedConfig(results=(str(tmp_path),), algo="mp1", control="mp1")
