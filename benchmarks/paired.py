@@ -25,6 +25,7 @@ from scipy.stats import t as student_t
 
 from benchmarks.success import Cell, read_cell
 from collectors.evaluation import wilson_interval
+from d2a_agents.success_plot import save_figure
 
 
 @dataclass(frozen=True)
@@ -175,12 +176,7 @@ def plot(pairs: list[Pair], config: PairedConfig, path: str | Path) -> Path:
     axes.set_yticks(range(len(pairs) + 1), [pair.name for pair in pairs] + ["mean over pairs"], fontsize=7)
     axes.invert_yaxis()
     axes.set_xlabel(f"{config.algo} minus {config.control}, final-checkpoint success (points)")
-    figure.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 def run(config: PairedConfig) -> list[Pair]:
