@@ -94,6 +94,24 @@ def find_pairs(files: list[Path], algo: str, control: str) -> list[Pair]:
     return pairs
 
 
+def pair_cells(cells: list[Cell], algo: str, control: str) -> list[Pair]:
+    """The pairs among one grid's cells (one setting per task), matched on task,
+    demonstrations and seed, in the ``algo`` cells' order."""
+    controls = {(cell.task, cell.demos, cell.seed): cell for cell in cells if cell.algo == control}
+    return [Pair(f"{cell.task}_d{cell.demos}_s{cell.seed}", cell, controls[cell.task, cell.demos, cell.seed])
+            for cell in cells if cell.algo == algo and (cell.task, cell.demos, cell.seed) in controls]
+
+
+def grid_note(cells: list[Cell], algo: str = "d2a", control: str = "d2a-present") -> list[str]:
+    """Lines closing a grid's report: ``algo`` against ``control`` over the grid's pairs (none
+    without a pair)."""
+    pairs = pair_cells(cells, algo, control)
+    if not pairs:
+        return []
+    return ["", f"`{algo}` against its control `{control}` cell by cell (same task, demonstrations, seed and "
+                f"layouts; `d2a bench paired`): {summary_sentence(pairs, algo, control)}"]
+
+
 def _split(stem: str) -> tuple[str, str, str]:
     """(task, method, the rest) of a cell name ``<task>_<method>_<rest>``."""
     parts = stem.split("_", 2)
@@ -139,15 +157,22 @@ def report(pairs: list[Pair], config: PairedConfig) -> str:
     for pair in pairs:
         lines.append(f"| {pair.name} | {pair.treated.final_wins}/{pair.treated.final_episodes} | "
                      f"{pair.control.final_wins}/{pair.control.final_episodes} | {100 * pair.difference:+.0f} |")
-    summary = summarize_pairs(pairs)
+    return "\n".join([*lines, "", summary_sentence(pairs, config.algo, config.control)])
+
+
+def summary_sentence(pairs: list[Pair], algo: str, control: str) -> str:
+    """One sentence: how many pairs, wins / ties / losses, the mean difference over pairs and
+    the pooled episodes' difference, each with its 95 % interval."""
+    summary, a = summarize_pairs(pairs), f"`{algo}`"
     interval = (f"[{100 * summary.low:+.1f}, {100 * summary.high:+.1f}] (Student t over pairs)"
                 if summary.pairs > 1 else "(one pair: no interval)")
-    lines += ["", f"{summary.pairs} pairs: {a} ahead in {summary.wins}, level in {summary.ties}, behind in "
-              f"{summary.losses}; mean difference {100 * summary.mean:+.1f} points {interval}; pooled episodes "
-              f"{100 * summary.pooled_treated:.1f} % against {100 * summary.pooled_control:.1f} %, difference "
+    pooled = (f"{100 * summary.pooled_treated:.1f} % against {100 * summary.pooled_control:.1f} %, difference "
               f"{100 * (summary.pooled_treated - summary.pooled_control):+.1f} "
-              f"[{100 * summary.pooled_low:+.1f}, {100 * summary.pooled_high:+.1f}] (Newcombe)."]
-    return "\n".join(lines)
+              f"[{100 * summary.pooled_low:+.1f}, {100 * summary.pooled_high:+.1f}] (Newcombe)")
+    plural = "s" if summary.pairs != 1 else ""
+    return (f"{summary.pairs} pair{plural} of {a} and `{control}`: {a} ahead in {summary.wins}, level in "
+            f"{summary.ties}, behind in {summary.losses}; mean difference {100 * summary.mean:+.1f} points "
+            f"{interval}; pooled episodes {pooled}.")
 
 
 def plot(pairs: list[Pair], config: PairedConfig, path: str | Path) -> Path:

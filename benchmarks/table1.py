@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import d2a_envs
+from benchmarks.paired import grid_note
 from benchmarks.success import (
     Cell,
     SuccessBenchConfig,
@@ -227,7 +228,7 @@ def report(cells: list[Cell], config: Table1Config) -> str:
     for method, values in PAPER_TABLE1.items():
         entries = [f"{values[key]:g}" for key in (*GROUPS[::-1], *ADROIT_COLUMNS)]
         lines.append(f"| {method} (paper) | paper | " + " | ".join(entries) + " |")
-    lines += ["", ADROIT_NOTE]
+    lines += ["", ADROIT_NOTE, *grid_note(cells)]
     return "\n".join(lines)
 
 

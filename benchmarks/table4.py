@@ -26,6 +26,7 @@ import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
+from benchmarks.paired import grid_note
 from benchmarks.success import (
     Cell,
     SuccessBenchConfig,
@@ -117,7 +118,7 @@ def report(cells: list[Cell], config: Table4Config) -> str:
                 paper = PAPER_TABLE4.get(demos, {}).get(task)
                 entries.append(measured + (f" [paper {paper[0]} / {paper[1]}]" if paper else ""))
             lines.append(f"| {demos} | " + " | ".join(entries) + " |")
-    return "\n".join(lines)
+    return "\n".join([*lines, *grid_note(cells)])
 
 
 def detail_table(cells: list[Cell]) -> str:

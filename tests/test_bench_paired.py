@@ -8,7 +8,16 @@ import math
 
 import pytest
 
-from benchmarks.paired import PairedConfig, cell_files, find_pairs, newcombe_interval, summarize_pairs
+from benchmarks import table4
+from benchmarks.paired import (
+    PairedConfig,
+    cell_files,
+    find_pairs,
+    grid_note,
+    newcombe_interval,
+    pair_cells,
+    summarize_pairs,
+)
 from benchmarks.success import Cell
 from d2a.cli import main
 
@@ -67,7 +76,7 @@ def test_cli_prints_the_pairs_and_draws_them(tmp_path, capsys):
     main(["bench", "paired", "--results", str(tmp_path / "a"), "--results", str(tmp_path / "b"),
           "--plot", str(tmp_path / "paired.png")])
     out = capsys.readouterr().out
-    assert "| push_s0_e5 | 70/100 | 60/100 | +10 |" in out and "1 pairs:" in out
+    assert "| push_s0_e5 | 70/100 | 60/100 | +10 |" in out and "1 pair of" in out
     assert (tmp_path / "paired.png").stat().st_size > 0
     with pytest.raises(SystemExit, match="has a mp1 twin"):
         main(["bench", "paired", "--results", str(tmp_path / "a"), "--control", "mp1"])
@@ -75,3 +84,18 @@ def test_cli_prints_the_pairs_and_draws_them(tmp_path, capsys):
         main(["bench", "paired", "--results", str(tmp_path / "missing")])
     with pytest.raises(ValueError, match="nothing to compare"):
         PairedConfig(results=(str(tmp_path),), algo="mp1", control="mp1")
+
+
+def test_a_grid_report_closes_with_its_pairs():
+    def cell(algo: str, seed: int, demos: int, wins: int) -> Cell:
+        return Cell("push", algo, seed, [wins / 100], wins, 100, train_seconds=1.0, demos=demos)
+
+    cells = [cell("d2a", 0, 5, 70), cell("d2a-present", 0, 5, 60), cell("d2a", 1, 5, 80),  # seed 1: no control
+             cell("d2a-present", 0, 10, 90), cell("mp1", 0, 5, 50)]  # another count, another method
+    pairs = pair_cells(cells, "d2a", "d2a-present")
+    assert [(pair.name, pair.difference) for pair in pairs] == [("push_d5_s0", pytest.approx(0.1))]
+    text = table4.report(cells, table4.Table4Config())
+    assert text.endswith("1 pair of `d2a` and `d2a-present`: `d2a` ahead in 1, level in 0, behind in 0; mean "
+                         "difference +10.0 points (one pair: no interval); pooled episodes 70.0 % against 60.0 %, "
+                         "difference +10.0 [-3.2, +22.7] (Newcombe).")
+    assert grid_note([cell("mp1", 0, 5, 50)]) == []  # no pair, no note

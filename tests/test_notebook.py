@@ -29,5 +29,5 @@ def test_pipeline_notebook_executes(tmp_path):
 
 def test_results_notebook_reads_the_shipped_cells():
     text, images = _execute("results.ipynb", NOTEBOOKS)
-    assert "paper protocol" in text and "very_hard" in text and "pairs:" in text
+    assert "paper protocol" in text and "very_hard" in text and "pairs of" in text
     assert images == 3  # Table I, Table IV, the paired differences
