@@ -113,8 +113,8 @@ def test_bench_wm_sets_the_main_model_the_baseline_row_and_the_collection(captur
 
 def test_the_cli_offers_every_policy_variant_and_expert_kind():
     from collectors.adroit_experts import EXPERT_KINDS
-    from d2a.cli import ALGOS, STATE_ALGOS
-    from d2a.cli import EXPERT_KINDS as CLI_EXPERT_KINDS
+    from d2a.cli_options import ALGOS, STATE_ALGOS
+    from d2a.cli_options import EXPERT_KINDS as CLI_EXPERT_KINDS
     from d2a_agents.policy.agent import ALGORITHMS, STATE_ALGORITHMS
 
     assert ALGOS == ALGORITHMS and CLI_EXPERT_KINDS == EXPERT_KINDS
@@ -133,7 +133,7 @@ def test_the_learnability_check_takes_its_state_policy(monkeypatch):
 
 
 def test_the_cli_offers_every_kind_of_evaluation_layouts(captured):
-    from d2a.cli import EVAL_LAYOUTS
+    from d2a.cli_options import EVAL_LAYOUTS
     from d2a_agents.policy.train import EVAL_LAYOUTS as TRAINER_LAYOUTS
 
     assert EVAL_LAYOUTS == TRAINER_LAYOUTS
