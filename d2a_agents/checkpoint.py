@@ -64,7 +64,11 @@ def load_for_resume(
     for key in keys:
         old, new = previous.get(key), expected[key]
         if upgrades and key in upgrades and old is not None:
-            old = upgrades[key](old)
+            try:
+                old = upgrades[key](old)
+            except (TypeError, ValueError, KeyError) as error:  # e.g. a setting this code does not know
+                raise CheckpointError(f"{path} holds a {key} this code cannot read ({error}); "
+                                      "choose another --out") from error
         if isinstance(old, dict) and isinstance(new, dict):
             old = {**{name: value if value is False else None for name, value in new.items()}, **old}
         if old != new:

@@ -221,6 +221,11 @@ def test_a_checkpoint_written_before_a_policy_setting_existed_resumes(reach_data
     save_checkpoint(tmp_path / CHECKPOINT_NAME, "policy", {**payload, "policy_config": wider})
     with pytest.raises(CheckpointError, match="embed_dim"):
         train_policy(policy_config("mp1", reach_data, tmp_path, steps=6))
+    newer = copy.deepcopy(older)
+    newer["encoder"]["a_setting_from_later_code"] = 1
+    save_checkpoint(tmp_path / CHECKPOINT_NAME, "policy", {**payload, "policy_config": newer})
+    with pytest.raises(CheckpointError, match="cannot read"):
+        train_policy(policy_config("mp1", reach_data, tmp_path, steps=6))
 
 
 def test_a_checkpoint_acts_with_other_actions_per_plan_draws_and_sample_steps(reach_data, tmp_path):
