@@ -25,8 +25,8 @@ from d2a.cli_options import (
     finite_at_least,
     parsed_acting,
     parsed_env_kwargs,
+    parsed_stacked_horizons,
     replace_given,
-    stacked,
 )
 
 
@@ -194,7 +194,7 @@ def cmd_train_policy(args: argparse.Namespace) -> None:
     policy = replace_given(preset.policy, algo=args.algo, horizon=args.horizon, n_obs_steps=args.n_obs_steps,
                             n_action_steps=args.n_action_steps, num_points=args.policy_points,
                             imagined_points=args.imagined_points, oracle_horizon=args.oracle_horizon,
-                            stacked_horizons=stacked(args), cfg_similarity=args.cfg_similarity,
+                            stacked_horizons=parsed_stacked_horizons(args), cfg_similarity=args.cfg_similarity,
                             adaptive_power=args.adaptive_power, cfg_guidance=args.cfg_guidance,
                             cfg_scale=args.cfg_scale, meanflow_output=args.meanflow_output,
                             cfg_thresholds=tuple(args.cfg_thresholds) if args.cfg_thresholds else None)

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from d2a_agents.policy.checkpoints import Acting
+
 # d2a_agents.policy.agent.ALGORITHMS, spelled out so that `d2a --help` does not import torch
 ALGOS = ("d2a", "d2a-change", "d2a-change-top", "d2a-no-cfg", "d2a-no-imagination", "d2a-present", "d2a-oracle",
          "mp1", "dp3", "flowpolicy", "edm", "cp", "dp", "mp1-state", "dp3-state")
@@ -145,12 +146,12 @@ def with_policy_options(bench: Any, args: argparse.Namespace) -> Any:
     """A success bench's per-cell settings with the policy options given (steps, point budget,
     oracle horizons, MeanFlow output)."""
     policy = replace_given(bench.policy.policy, num_points=args.policy_points, imagined_points=args.imagined_points,
-                            oracle_horizon=args.oracle_horizon, stacked_horizons=stacked(args),
+                            oracle_horizon=args.oracle_horizon, stacked_horizons=parsed_stacked_horizons(args),
                             meanflow_output=args.meanflow_output)
     return dataclasses.replace(bench, policy=replace_given(bench.policy, steps=args.steps, policy=policy))
 
 
-def stacked(args: argparse.Namespace) -> tuple[int, ...] | None:
+def parsed_stacked_horizons(args: argparse.Namespace) -> tuple[int, ...] | None:
     """The ``--stacked-horizon`` values as the policy setting (``None``: not given)."""
     return tuple(args.stacked_horizons) if args.stacked_horizons else None
 
