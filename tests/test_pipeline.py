@@ -354,6 +354,32 @@ def test_world_model_resume_refuses_other_training_settings(reach_data, world_mo
     assert load_checkpoint(world_model, "world_model")["step"] == before
 
 
+def test_a_world_model_checkpoint_written_before_a_setting_existed_resumes(reach_data, world_model, tmp_path):
+    """An older world-model config lacks the settings added since: the run resumes where
+    their defaults do what older code did (``encoder``), and is refused where they do not
+    (without ``plane_pooling`` the model pooled by the mean, not today's max) or where the
+    checkpoint holds a setting this code does not know."""
+    out = tmp_path / "wm.pt"
+    payload = load_checkpoint(world_model, "world_model")
+    config = TrainWorldModelConfig(data=reach_data, out=str(out), model=WorldModelConfig(resolution=(16, 16, 8)),
+                                   steps=3, batch_size=2, queries=256, validate_every=2, validation_stride=20,
+                                   progress=False)
+
+    def store(without: str = "", **extra: object) -> None:
+        older = {key: value for key, value in payload["config"].items() if key != without}
+        save_checkpoint(out, "world_model", {**payload, "config": {**older, **extra}})
+
+    store(without="encoder")
+    train_world_model(config)
+    assert load_checkpoint(out, "world_model")["step"] == 3
+    store(without="plane_pooling")
+    with pytest.raises(CheckpointError, match="plane_pooling: 'mean' -> 'max'"):
+        train_world_model(dataclasses.replace(config, steps=4))
+    store(a_setting_from_later_code=1)
+    with pytest.raises(CheckpointError, match="cannot read"):
+        train_world_model(dataclasses.replace(config, steps=4))
+
+
 def test_bad_world_model_settings_are_refused():
     bad = (("steps", 0), ("batch_size", -1), ("queries", 0), ("validate_every", 0), ("learning_rate", 0.0))
     for field, value in bad:

@@ -143,8 +143,7 @@ class Imaginer:
     @classmethod
     def from_checkpoint(cls, path: str | Path, num_points: int | None = None, **kwargs: object) -> Imaginer:
         payload = load_checkpoint(path, CHECKPOINT_KIND)
-        # Checkpoints written before ``plane_pooling`` existed pooled by the mean.
-        model = TriplaneWorldModel(WorldModelConfig(**{"plane_pooling": "mean", **payload["config"]}))
+        model = TriplaneWorldModel(WorldModelConfig.from_dict(payload["config"]))
         try:
             model.load_state_dict(payload["model"])
         except RuntimeError as error:

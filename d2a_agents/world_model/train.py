@@ -221,7 +221,8 @@ def _train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldMode
     payload = _payload(config, dataset, grid)
     start, history = 0, []
     out = Path(config.out)
-    previous = load_for_resume(out, CHECKPOINT_KIND, payload, ("config", "grid", "tasks", "run_config"))
+    previous = load_for_resume(out, CHECKPOINT_KIND, payload, ("config", "grid", "tasks", "run_config"),
+                               upgrades={"config": lambda raw: WorldModelConfig.from_dict(raw).to_dict()})
     if previous is not None:
         model.load_state_dict(previous["model"])
         optimizer.load_state_dict(previous["optimizer"])

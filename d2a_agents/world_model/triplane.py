@@ -88,6 +88,13 @@ class WorldModelConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def from_dict(cls, raw: dict) -> WorldModelConfig:
+        """The config a checkpoint recorded, read as this code reads it: a setting added since
+        takes the value older code had (a checkpoint without ``plane_pooling`` pooled by the
+        mean; the others' defaults are what older code did). An unknown setting is a TypeError."""
+        return cls(**{"plane_pooling": "mean", **raw})
+
 
 # The CPU preset: the paper's grid and C, with the point-scatter encoder, whose cost follows the
 # occupied voxels (a Conv3d over 128x128x32 costs seconds per step on a CPU). `d2a bench wm`
