@@ -87,7 +87,7 @@ EXPERTS = {
 }
 
 
-class _PlannerReplica:
+class PlannerReplica:
     """The planning model of one task (cost sensors added) and its planner, seeded per episode."""
 
     def __init__(self, task: str) -> None:
@@ -146,11 +146,11 @@ class AdroitExpert(TensorDictModuleBase):
         self.task, self.kind = spec.task, kind
         self.in_keys = [PHYSICS_KEY, "step_count", "episode_seed"]
         self.out_keys = ["action"]
-        self._replicas: list[_PlannerReplica | _ControllerReplica] = []
+        self._replicas: list[PlannerReplica | _ControllerReplica] = []
 
-    def _replica(self, index: int) -> _PlannerReplica | _ControllerReplica:
+    def _replica(self, index: int) -> PlannerReplica | _ControllerReplica:
         """The replica of the scene of the ``index``-th env of a batch."""
-        make = _ControllerReplica if self.kind == "controller" else _PlannerReplica
+        make = _ControllerReplica if self.kind == "controller" else PlannerReplica
         while len(self._replicas) <= index:
             self._replicas.append(make(self.task))
         return self._replicas[index]

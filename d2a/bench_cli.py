@@ -60,6 +60,13 @@ def cmd_bench_tune_expert(args: argparse.Namespace) -> None:
                        first_seed=args.first_seed, seed=args.seed, noise=args.noise, out=args.out))
 
 
+def cmd_bench_pen_library(args: argparse.Namespace) -> None:
+    from benchmarks.pen_library import PenLibraryConfig, build
+
+    build(replace_given(PenLibraryConfig(), out=args.out, nodes=args.nodes, iterations=args.iterations,
+                        samples=args.samples, tracking=args.tracking, search_seed=args.seed))
+
+
 def cmd_bench_latency(args: argparse.Namespace) -> None:
     from benchmarks.latency import LatencyBenchConfig, run
 
@@ -227,6 +234,18 @@ def add_bench_commands(commands: Any) -> None:
                                  "(the DART noise of the demonstrations to come), the same draws for every candidate")
     bench_tune.add_argument("--out", default=None, help="JSON of the accepted candidates")
     bench_tune.set_defaults(func=cmd_bench_tune_expert)
+
+    bench_pen = bench.add_parser("pen-library", help="build (or resume) Adroit Pen's sequence library by "
+                                                     "continuation over the target's roll and pitch")
+    bench_pen.add_argument("--out", default=None, help="the library file (default: the one the package ships)")
+    bench_pen.add_argument("--nodes", type=POSITIVE, default=None, help="grid nodes per angle (default 6)")
+    bench_pen.add_argument("--iterations", type=NON_NEGATIVE, default=None,
+                           help="random-search rounds per node (default 20)")
+    bench_pen.add_argument("--samples", type=POSITIVE, default=None, help="candidates per round (default 32)")
+    bench_pen.add_argument("--tracking", type=NON_NEGATIVE_FLOAT, default=None,
+                           help="weight of the change from the neighbour's sequence (default 2.0)")
+    bench_pen.add_argument("--seed", type=NON_NEGATIVE, default=None, help="seed of the random search")
+    bench_pen.set_defaults(func=cmd_bench_pen_library)
 
     bench_latency = bench.add_parser("latency", help="batch-1 CPU latency: MeanFlow 1 NFE vs DDIM 10 NFE, imagination")
     bench_latency.add_argument("--task", default=None)
