@@ -34,6 +34,7 @@ class PairedConfig:
     algo: str = "d2a"
     control: str = "d2a-present"
     plot: str | None = None  # where to draw the per-pair differences (none: no plot)
+    tasks: tuple[str, ...] = ()  # only these tasks' pairs (cell-name spelling, e.g. adroit-door; none: all)
 
     def __post_init__(self) -> None:
         if not self.results:
@@ -206,9 +207,11 @@ def plot(pairs: list[Pair], config: PairedConfig, path: str | Path) -> Path:
 
 def run(config: PairedConfig) -> list[Pair]:
     pairs = [pair for directory in config.results
-             for pair in find_pairs(cell_files(directory), config.algo, config.control)]
+             for pair in find_pairs(cell_files(directory), config.algo, config.control)
+             if not config.tasks or pair.treated.task in config.tasks]
     if not pairs:
-        raise ValueError(f"no {config.algo} cell in {', '.join(config.results)} has a {config.control} twin")
+        among = f" of {', '.join(config.tasks)}" if config.tasks else ""
+        raise ValueError(f"no {config.algo} cell{among} in {', '.join(config.results)} has a {config.control} twin")
     print(report(pairs, config))
     if config.plot:
         print(f"plot: {plot(pairs, config, config.plot)}")

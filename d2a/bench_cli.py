@@ -183,7 +183,7 @@ def cmd_bench_paired(args: argparse.Namespace) -> None:
     from benchmarks.paired import PairedConfig, run
 
     run(replace_given(PairedConfig(results=tuple(args.results)), algo=args.algo, control=args.control,
-                       plot=args.plot))
+                       plot=args.plot, tasks=tuple(args.task) if args.task else None))
 
 
 def cmd_bench_ray(args: argparse.Namespace) -> None:
@@ -396,6 +396,8 @@ def add_bench_commands(commands: Any) -> None:
     bench_paired.add_argument("--algo", choices=ALGOS, default=None, help="default: d2a")
     bench_paired.add_argument("--control", choices=ALGOS, default=None, help="default: d2a-present")
     bench_paired.add_argument("--plot", default=None, help="a PNG of the per-pair differences (default: none)")
+    bench_paired.add_argument("--task", action="append", default=None,
+                              help="only this task's pairs, as cell names spell it (adroit-door); repeatable")
     bench_paired.set_defaults(func=cmd_bench_paired)
 
     bench_ray = bench.add_parser("ray", help="the same small bench success grid on 1 and 2 Ray CPUs: wall time")

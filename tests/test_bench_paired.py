@@ -86,6 +86,17 @@ def test_cli_prints_the_pairs_and_draws_them(tmp_path, capsys):
         PairedConfig(results=(str(tmp_path),), algo="mp1", control="mp1")
 
 
+def test_pairs_can_be_kept_to_some_tasks(tmp_path, capsys):
+    for task, wins in (("push", 70), ("adroit-door", 20)):
+        _write(tmp_path, f"{task}_d2a_s0_e5", wins)
+        _write(tmp_path, f"{task}_d2a-present_s0_e5", 50)
+    main(["bench", "paired", "--results", str(tmp_path), "--task", "adroit-door"])
+    out = capsys.readouterr().out
+    assert "| adroit-door_s0_e5 | 20/100 | 50/100 | -30 |" in out and "push_s0" not in out and "1 pair of" in out
+    with pytest.raises(SystemExit, match="no d2a cell of reach"):
+        main(["bench", "paired", "--results", str(tmp_path), "--task", "reach"])
+
+
 def test_a_grid_report_closes_with_its_pairs():
     def cell(algo: str, seed: int, demos: int, wins: int) -> Cell:
         return Cell("push", algo, seed, [wins / 100], wins, 100, train_seconds=1.0, demos=demos)
