@@ -30,11 +30,13 @@ from mujoco import rollout
 from tqdm import tqdm
 
 from collectors.adroit_experts import EXPERTS, PlannerReplica
-from collectors.pen_sequences import DEFAULT_LIBRARY, SequenceLibrary, as_stored
+from collectors.evaluation import wilson_interval
+from collectors.pen_sequences import DEFAULT_LIBRARY, SequenceLibrary, as_stored, target_roll_pitch
 from collectors.predictive_sampling import planning_model
 from d2a_envs.suites.adroit import PHYSICS_STATE, AdroitEnv, physics_vector, set_physics
 
 SUCCESS_DOT, SUCCESS_DISTANCE = 0.95, 0.075  # the env's success
+CHECK_FIRST_LAYOUT = 1000  # apart from the demonstrations' layouts (0, 1, ...)
 _TRACKED = ("object_top", "object_bottom", "target_top", "target_bottom", "eps_ball")
 
 
@@ -55,6 +57,8 @@ class PenLibraryConfig:
         hold_steps: how many of the episode's best steps the score reads.
         retry_below: nodes meeting their target on fewer steps are retried from other neighbours.
         search_seed: seed of the random search.
+        check_layouts: seeded layouts (1000, 1001, ...) on which the finished library's blend is
+            checked (0: no check).
     """
 
     out: str = str(DEFAULT_LIBRARY)
@@ -71,6 +75,7 @@ class PenLibraryConfig:
     hold_steps: int = 40
     retry_below: int = 10
     search_seed: int = 0
+    check_layouts: int = 100
 
     def __post_init__(self) -> None:
         if self.nodes < 2 or self.steps < 2 or self.knots < 2 or self.samples < 2 or self.iterations < 0:
@@ -210,4 +215,22 @@ def build(config: PenLibraryConfig) -> SequenceLibrary:
         library.save(out)
     print(f"{int(library.solved.sum())} nodes solved, {int((library.hold_steps > 0).sum())} meet their target; "
           f"this call took {time.perf_counter() - started:.0f} s")
+    if config.check_layouts:
+        wins = check(library, rollouts, range(CHECK_FIRST_LAYOUT, CHECK_FIRST_LAYOUT + config.check_layouts))
+        low, high = wilson_interval(wins, config.check_layouts)
+        print(f"the blend meets the target in {wins}/{config.check_layouts} seeded layouts "
+              f"[{100 * low:.1f}-{100 * high:.1f}] (layouts {CHECK_FIRST_LAYOUT}-, on the true model)")
     return library
+
+
+def check(library: SequenceLibrary, rollouts: PenRollouts, layouts: range) -> int:
+    """In how many of the env's seeded ``layouts`` the library's blend meets the target."""
+    env = AdroitEnv("pen", state_obs=False)
+    wins = 0
+    for layout in layouts:
+        env.reset(seed=layout)
+        roll, pitch = target_roll_pitch(env.model.body_quat[env.model.body("target").id])
+        sequence = np.stack([library.action(roll, pitch, step) for step in range(library.sequences.shape[2])])
+        wins += int(success_steps(*rollouts.measure(sequence[None], roll, pitch))[0] > 0)
+    env.close()
+    return wins

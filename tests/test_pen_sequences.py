@@ -85,7 +85,7 @@ def test_the_search_never_scores_worse_than_its_start():
 
 def test_a_tiny_build_solves_every_node_and_a_rerun_resumes_without_redoing_them(tmp_path):
     config = PenLibraryConfig(out=str(tmp_path / "lib.npz"), nodes=2, steps=6, iterations=1, samples=2, knots=2,
-                              hold_steps=3)
+                              hold_steps=3, check_layouts=2)
     library = build(config)
     assert library.solved.all() and (library.attempts >= 1).all()
     again = build(config)
