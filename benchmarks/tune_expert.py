@@ -75,7 +75,7 @@ class TuneConfig:
     def __post_init__(self) -> None:
         task = d2a_envs.get_task(self.task).task
         if task not in SEARCH_SPACE:
-            raise ValueError(f"no controller to tune for {self.task}: tunable are {sorted(SEARCH_SPACE)}")
+            raise ValueError(f"no controller settings to tune for {self.task}: tunable are {sorted(SEARCH_SPACE)}")
         if self.iterations < 0 or self.episodes < 1 or not 0 < self.step <= 1 or not self.noise >= 0:
             raise ValueError("iterations >= 0, episodes >= 1, 0 < step <= 1 and noise >= 0, please")
 

@@ -5,7 +5,8 @@ every episode, and ten such demonstrations do not pin down one behaviour a polic
 imitate. A controller here is a deterministic function of the scene's state: its phase
 (reach, grasp, turn, pull...) follows from positions alone, its arm targets from damped
 least-squares inverse kinematics on the true model, so the same state always gets the same
-action, as from DP3's and MP1's trained RL agents.
+action, as from DP3's and MP1's trained RL agents. Pen's controller is open loop: it plays the
+sequence library's actions for its target (:mod:`collectors.pen_sequences`).
 
 Adroit's actuators are position servos whose force is ``gain * ctrl - bias * q``; the arm's
 (gain 500, bias 200) hold ``q = 2.5 ctrl``, not ``ctrl``. :meth:`HandKinematics.action`
@@ -20,6 +21,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from collectors.pen_sequences import DEFAULT_LIBRARY, cached_library, target_roll_pitch
 from d2a_envs.suites.adroit import AdroitEnv, set_physics
 
 FINGER_FLEXION = tuple(f"{finger}J{joint}" for finger in ("FF", "MF", "RF", "LF") for joint in (2, 1, 0))
@@ -293,7 +295,30 @@ def hammer_action(kinematics: HandKinematics, data: mujoco.MjData, config: Hamme
     return kinematics.action(data, kinematics.targets(joints))
 
 
-CONTROLLERS = {"door": (door_action, DoorControllerConfig), "hammer": (hammer_action, HammerControllerConfig)}
+@dataclass(frozen=True)
+class PenControllerConfig:
+    """Settings of :func:`pen_action`.
+
+    Attributes:
+        library: the sequence library (:mod:`collectors.pen_sequences`; the one shipped by default).
+        control_period: seconds per control step (Pen: 5 physics steps of 2 ms), which turns
+            the state's clock into the step of the sequence.
+    """
+
+    library: str = str(DEFAULT_LIBRARY)
+    control_period: float = 0.01
+
+
+def pen_action(kinematics: HandKinematics, data: mujoco.MjData, config: PenControllerConfig) -> np.ndarray:
+    """The library's action for the target's roll and pitch at the step the state's clock says:
+    open loop, since every episode starts from the same state."""
+    roll, pitch = target_roll_pitch(kinematics.model.body_quat[kinematics.model.body("target").id])
+    step = round(data.time / config.control_period)
+    return np.clip(cached_library(config.library).action(roll, pitch, step), -1.0, 1.0)
+
+
+CONTROLLERS = {"door": (door_action, DoorControllerConfig), "hammer": (hammer_action, HammerControllerConfig),
+               "pen": (pen_action, PenControllerConfig)}
 
 
 class ControllerReplica:

@@ -301,8 +301,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help="Gaussian noise on the executed actions while the stored labels stay the expert's "
                               "(DART): demonstrations that also show how the expert recovers")
     collect.add_argument("--expert", choices=EXPERT_KINDS, default=None,
-                         help="Adroit: the state-feedback controller (default where the task has one) or the "
-                              "predictive-sampling planner")
+                         help="Adroit: the controller (Door, Hammer: state feedback, their default; Pen: its "
+                              "sequence library) or the predictive-sampling planner (Pen's default)")
     mode = collect.add_mutually_exclusive_group()
     mode.add_argument("--append", action="store_true", help="add to (or resume) an existing data set")
     mode.add_argument("--overwrite", action="store_true", help="replace an existing data set")
@@ -392,8 +392,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_env_options(evaluation)
     evaluation.add_argument("--policy", required=True, help="policy.pt of d2a train-policy, or 'expert'")
     evaluation.add_argument("--expert", choices=EXPERT_KINDS, default=None,
-                            help="with --policy expert on Adroit: the controller (default where the task has one) "
-                                 "or the planner")
+                            help="with --policy expert on Adroit: the controller (Door's and Hammer's default) "
+                                 "or the planner (Pen's)")
     evaluation.add_argument("--episodes", type=POSITIVE, default=100)
     evaluation.add_argument("--workers", type=POSITIVE, default=2)
     evaluation.add_argument("--end-on-success", action="store_true",

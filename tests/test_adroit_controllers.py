@@ -9,11 +9,13 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from gymnasium_robotics.utils.rotations import euler2quat
 
 from collectors.adroit_controllers import ControllerReplica, HandKinematics
 from collectors.adroit_experts import AdroitExpert, default_expert_kind
 from collectors.envs import make_torchrl_env
-from d2a_envs.suites.adroit import AdroitEnv
+from collectors.pen_sequences import DEFAULT_LIBRARY, SequenceLibrary
+from d2a_envs.suites.adroit import AdroitEnv, physics_vector
 from tests.conftest import SMALL_ENV_KWARGS
 
 ARM = ("ARTz", "ARRx", "ARRy")
@@ -78,18 +80,33 @@ def test_the_controller_acts_on_the_state_alone():
     env.close()
 
 
-def test_controllers_are_the_default_where_they_exist_and_refused_elsewhere():
+def test_the_default_experts_and_refusals():
     assert default_expert_kind("door") == default_expert_kind("hammer") == "controller"
-    assert default_expert_kind("pen") == "planner"
+    assert default_expert_kind("pen") == "planner"  # until policies learn from its library
+    assert AdroitExpert("adroit-pen", kind="controller").kind == "controller"
     assert AdroitExpert("adroit-door").kind == "controller"
     assert AdroitExpert("adroit-door", kind="planner").kind == "planner"
     with pytest.raises(ValueError, match="no controller for"):
-        AdroitExpert("adroit-pen", kind="controller")
+        ControllerReplica("relocate")
     with pytest.raises(ValueError, match="unknown expert kind"):
         AdroitExpert("adroit-door", kind="oracle")
 
 
-@pytest.mark.parametrize("task", ["adroit-door", "adroit-hammer"])
+def test_the_pen_controller_plays_the_library_at_the_target_and_the_step_of_the_state():
+    """Its action: the shipped library's blend for the target the env shows, at the step the
+    state's clock gives (5 physics steps of 2 ms per control step)."""
+    env = AdroitEnv("pen", state_obs=False, physics_obs=True)
+    env.reset(seed=0)
+    env.model.body_quat[env.model.body("target").id] = euler2quat(np.array([0.3, -0.5, 0.0]))
+    replica, library = ControllerReplica("pen"), SequenceLibrary.load(DEFAULT_LIBRARY)
+    for step in range(4):
+        physics = physics_vector(env.model, env.data, "pen")
+        np.testing.assert_allclose(replica.act(physics), np.clip(library.action(0.3, -0.5, step), -1, 1), atol=1e-9)
+        env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+    env.close()
+
+
+@pytest.mark.parametrize("task", ["adroit-door", "adroit-hammer", "adroit-pen"])
 def test_the_controller_solves_a_seeded_layout_within_the_episode(task):
     env = make_torchrl_env(task, {**SMALL_ENV_KWARGS, "physics_obs": True}, seed=7)
     with torch.no_grad():

@@ -44,8 +44,8 @@ def test_tuning_noise_is_drawn_from_the_layout_so_every_candidate_meets_the_same
     assert tune.first_successes("door", DoorControllerConfig(), range(1000, 1002), 200, noise=0.3) == [None, None]
 
 
-def test_a_task_without_a_controller_is_refused():
-    with pytest.raises(ValueError, match="no controller to tune"):
+def test_a_task_without_controller_settings_is_refused():
+    with pytest.raises(ValueError, match="no controller settings to tune"):
         TuneConfig(task="adroit-pen")
     with pytest.raises(ValueError, match="noise >= 0"):
         TuneConfig(noise=-0.1)
