@@ -1,10 +1,10 @@
-"""Adroit experts: a state-feedback controller or predictive sampling on a copy of the scene.
+"""Adroit experts: a controller or predictive sampling on a copy of the scene.
 
 Nothing can be downloaded here (DP3 and MP1 use pretrained VRL3 agents). The expert reads
 the env's ``physics`` observation (full MuJoCo state and the reset's layout) and copies it
 into its own copy of the scene; there it either runs the task's controller
 (:mod:`collectors.adroit_controllers`: a deterministic function of the state, the default
-where one exists) or plans the next action by model-predictive control on the true
+for Door and Hammer) or plans the next action by model-predictive control on the true
 simulator (:mod:`collectors.predictive_sampling`). The planners' costs are this module's
 own: gymnasium-robotics' dense rewards add +0.1 x the palm's distance to the handle or
 hammer, which pays for staying away.
