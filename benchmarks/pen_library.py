@@ -230,7 +230,7 @@ def check(library: SequenceLibrary, rollouts: PenRollouts, layouts: range) -> in
     for layout in layouts:
         env.reset(seed=layout)
         roll, pitch = target_roll_pitch(env.model.body_quat[env.model.body("target").id])
-        sequence = np.stack([library.action(roll, pitch, step) for step in range(library.sequences.shape[2])])
+        sequence = library.sequence(roll, pitch)
         wins += int(success_steps(*rollouts.measure(sequence[None], roll, pitch))[0] > 0)
     env.close()
     return wins

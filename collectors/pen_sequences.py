@@ -84,6 +84,13 @@ class SequenceLibrary:
     def action(self, roll: float, pitch: float, step: int) -> np.ndarray:
         """The bilinear blend of the four nodes around (roll, pitch) at ``step`` (the last
         step's action held after the sequence ends; angles outside the grid clamped to it)."""
+        return self._blend(roll, pitch, min(int(step), self.sequences.shape[2] - 1))
+
+    def sequence(self, roll: float, pitch: float) -> np.ndarray:
+        """The blend's whole sequence (steps, actuators) for (roll, pitch): every ``action`` at once."""
+        return self._blend(roll, pitch, slice(None))
+
+    def _blend(self, roll: float, pitch: float, steps: int | slice) -> np.ndarray:
         if not self.solved.all():
             raise ValueError(f"the library has {int((~self.solved).sum())} unsolved nodes: finish its build")
         spacing, last = self.axis[1] - self.axis[0], len(self.axis) - 1
@@ -91,8 +98,7 @@ class SequenceLibrary:
         low = np.minimum(position.astype(int), last - 1)
         u, v = position - low
         i, j = low
-        t = min(int(step), self.sequences.shape[2] - 1)
-        corners = self.sequences[i : i + 2, j : j + 2, t]
+        corners = self.sequences[i : i + 2, j : j + 2, steps]
         return ((1 - u) * (1 - v) * corners[0, 0] + (1 - u) * v * corners[0, 1]
                 + u * (1 - v) * corners[1, 0] + u * v * corners[1, 1])
 

@@ -29,6 +29,7 @@ def test_the_blend_of_the_four_nodes_around_a_target_matches_a_hand_computation(
     assert library.action(0.3, -0.7, 1) == pytest.approx([2 * 0.3 + 0.7 + 0.1] * 2)
     assert library.action(5.0, -5.0, 1) == pytest.approx([2 * 1.0 + 1.0 + 0.1] * 2)  # clamped to the grid
     assert library.action(0.0, 0.0, 99) == pytest.approx([0.2] * 2)  # the last step held
+    assert np.array_equal(library.sequence(0.3, -0.7), np.stack([library.action(0.3, -0.7, t) for t in range(3)]))
     # a hand bilinear blend of arbitrary corner values
     library.sequences[:] = np.random.default_rng(1).normal(size=library.sequences.shape)
     u, v = (0.3 + 1.0) / 0.5 - 2, (-0.7 + 1.0) / 0.5 - 0  # cell (2, 0) of a 0.5-rad grid
