@@ -28,10 +28,11 @@ import torch
 from tqdm import tqdm
 
 import d2a_envs
+from collectors.adroit_experts import EXPERT_KINDS
 from collectors.collect import CollectConfig, collect, dart_tag
 from collectors.envs import STATE_KEY, make_torchrl_env
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
-from collectors.experts import expert_env_kwargs, make_expert
+from collectors.experts import ExpertSettings, expert_env_kwargs, make_expert
 from collectors.ray_jobs import ray_connection
 from d2a_agents.policy.agent import STATE_ALGORITHMS
 from d2a_agents.policy.checkpoints import Acting, evaluate_checkpoint
@@ -83,11 +84,19 @@ class ExpertBenchConfig:
     imitation_action_draws: int = 1  # chunks drawn per plan, acted on as their mean (d2a eval --action-draws)
     imitation_algo: str = "mp1-state"  # the check's state policy: a privileged-state reference of policy.agent
     workdir: str = "outputs/bench_experts"  # the check's demonstrations and policies
+    expert: str | None = None  # the Adroit expert kind (controller, planner); None: each task's default
 
     def __post_init__(self) -> None:
         if self.imitation_algo not in STATE_ALGORITHMS:
             raise ValueError(f"imitation_algo must be a state policy, one of {list(STATE_ALGORITHMS)}; "
                              f"got {self.imitation_algo!r}")
+        if self.expert not in (None, *EXPERT_KINDS):
+            raise ValueError(f"expert must be one of {EXPERT_KINDS} (or None: each task's default); "
+                             f"got {self.expert!r}")
+
+    def settings(self, task: str) -> ExpertSettings:
+        """The expert of ``task``: ``expert`` on an Adroit task; Meta-World tasks have one scripted expert."""
+        return ExpertSettings(kind=self.expert if d2a_envs.get_task(task).suite == "adroit" else None)
 
 
 def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
@@ -95,12 +104,14 @@ def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
     preset, one thread) on ``imitation_demos`` of the expert's demonstrations of ``task``
     (collected with ``imitation_dart_noise``), its final checkpoint on ``imitation_episodes``
     new layouts, acting on the mean of ``imitation_action_draws``."""
-    dart = dart_tag(config.imitation_dart_noise)
-    data = Path(config.workdir) / "data" / f"{task}{dart}"
+    kind = config.settings(task).kind
+    tag = dart_tag(config.imitation_dart_noise) + (f"_{kind}" if kind else "")
+    data = Path(config.workdir) / "data" / f"{task}{tag}"
     collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.imitation_demos, append=True,
-                          env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise, progress=False))
+                          env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise, expert=kind,
+                          progress=False))
     preset = POLICY_PRESETS["cpu"]
-    run = Path(config.workdir) / "runs" / f"{task}_{config.imitation_algo}_d{config.imitation_demos}{dart}"
+    run = Path(config.workdir) / "runs" / f"{task}_{config.imitation_algo}_d{config.imitation_demos}{tag}"
     train_policy(TrainPolicyConfig.from_preset(
         preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=config.imitation_algo),
         steps=config.imitation_steps, demos=config.imitation_demos, eval_episodes=0, threads=1, progress=False))
@@ -109,8 +120,8 @@ def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
                                acting=Acting(action_draws=config.imitation_action_draws))
 
 
-def _expert(task: str) -> functools.partial:
-    return functools.partial(make_expert, task)
+def _expert(config: ExpertBenchConfig, task: str) -> functools.partial:
+    return functools.partial(make_expert, task, config.settings(task))
 
 
 def _env_kwargs(config: ExpertBenchConfig, task: str) -> dict[str, Any]:
@@ -122,7 +133,7 @@ def _distances(task: str, seed: int, config: ExpertBenchConfig) -> str:
     close the hand came to the object and the object to the goal."""
     env = make_torchrl_env(task, {**config.env_kwargs, "max_episode_steps": config.late_max_steps}, seed=seed)
     with contextlib.closing(env), torch.no_grad():
-        rollout = env.rollout(config.late_max_steps, make_expert(task))
+        rollout = env.rollout(config.late_max_steps, make_expert(task, config.settings(task)))
     assert int(rollout["episode_seed"][0]) == seed
     state = torch.cat([rollout[STATE_KEY][:1], rollout["next", STATE_KEY]])
     hand, obj, goal = state[:, _HAND], state[:, _OBJECT], state[:, _GOAL]
@@ -143,7 +154,7 @@ def failure_reason(result: EvaluationResult, config: ExpertBenchConfig) -> str:
     """One line on why the expert failed: late successes, else the distances of one failure."""
     failed = [seed for seed, success in zip(result.seeds, result.successes, strict=True) if not success]
     late = evaluate(
-        _expert(result.task), result.task, len(result.seeds), result.seeds[0], _env_kwargs(config, result.task),
+        _expert(config, result.task), result.task, len(result.seeds), result.seeds[0], _env_kwargs(config, result.task),
         workers=config.workers, max_steps=config.late_max_steps, progress=False, ray_address=config.ray_address,
     )
     late_steps = dict(zip(late.seeds, late.success_steps, strict=True))
@@ -165,11 +176,10 @@ def speedup(config: ExpertBenchConfig) -> list[dict[str, object]]:
     """Time the same episodes of ``speedup_task`` in one process and in ``workers``."""
     rows = []
     for episodes in config.speedup_episodes:
-        kwargs = dict(env_kwargs=_env_kwargs(config, config.speedup_task), max_steps=config.max_steps, progress=False)
-        single = evaluate(_expert(config.speedup_task), config.speedup_task, episodes, config.seed, workers=1, **kwargs)
-        parallel = evaluate(
-            _expert(config.speedup_task), config.speedup_task, episodes, config.seed, workers=config.workers, **kwargs
-        )
+        task = config.speedup_task
+        kwargs = dict(env_kwargs=_env_kwargs(config, task), max_steps=config.max_steps, progress=False)
+        single = evaluate(_expert(config, task), task, episodes, config.seed, workers=1, **kwargs)
+        parallel = evaluate(_expert(config, task), task, episodes, config.seed, workers=config.workers, **kwargs)
         same = single.successes == parallel.successes and single.returns == parallel.returns
         rows.append(dict(episodes=episodes, single=single.seconds, parallel=parallel.seconds, same=same))
     return rows
@@ -186,7 +196,7 @@ def _run(config: ExpertBenchConfig) -> list[dict[str, object]]:
     results: list[EvaluationResult] = []
     for task in tqdm(config.tasks, desc="tasks", disable=not config.progress):
         result = evaluate(
-            _expert(task), task, config.episodes, config.seed, _env_kwargs(config, task),
+            _expert(config, task), task, config.episodes, config.seed, _env_kwargs(config, task),
             workers=config.workers, max_steps=config.max_steps, progress=False, ray_address=config.ray_address,
         )
         results.append(result)
@@ -202,7 +212,8 @@ def _run(config: ExpertBenchConfig) -> list[dict[str, object]]:
     last_seed = config.seed + config.episodes - 1
     print(
         f"\nExperts, {config.episodes} episodes per task (seeds {config.seed}..{last_seed}),"
-        f" {config.max_steps} steps, env {config.env_kwargs}, {config.workers} workers\n"
+        f" {config.max_steps} steps, env {config.env_kwargs}, {config.workers} workers"
+        f"{f', Adroit expert: {config.expert}' if config.expert else ''}\n"
     )
     draws = f", mean of {config.imitation_action_draws} draws" if config.imitation_action_draws > 1 else ""
     imitation_header = (f" {config.imitation_algo} on {config.imitation_demos} demonstrations{draws} [95 %] "

@@ -8,6 +8,7 @@ from typing import Any
 
 from d2a.cli_options import (
     ALGOS,
+    EXPERT_KINDS,
     NON_NEGATIVE,
     NON_NEGATIVE_FLOAT,
     POSITIVE,
@@ -50,7 +51,8 @@ def cmd_bench_experts(args: argparse.Namespace) -> None:
                        workers=args.workers, ray_address=args.ray, imitation_demos=args.imitation_demos,
                        imitation_episodes=args.imitation_episodes, workdir=args.workdir,
                        imitation_dart_noise=args.imitation_dart_noise,
-                       imitation_action_draws=args.imitation_action_draws, imitation_algo=args.imitation_algo))
+                       imitation_action_draws=args.imitation_action_draws, imitation_algo=args.imitation_algo,
+                       expert=args.expert))
 
 
 def cmd_bench_tune_expert(args: argparse.Namespace) -> None:
@@ -219,6 +221,8 @@ def add_bench_commands(commands: Any) -> None:
     bench_experts.add_argument("--imitation-action-draws", type=POSITIVE, default=None, metavar="K",
                                help="its policy acts on the mean of K chunks per plan (d2a eval --action-draws)")
     bench_experts.add_argument("--workdir", default=None, help="the check's data and policies")
+    bench_experts.add_argument("--expert", choices=EXPERT_KINDS, default=None,
+                               help="the Adroit expert (default: each task's own; Meta-World tasks keep theirs)")
     add_ray_option(bench_experts)
     bench_experts.set_defaults(func=cmd_bench_experts)
 

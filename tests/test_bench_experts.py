@@ -51,3 +51,20 @@ def test_the_check_evaluates_with_the_draws_it_is_given(tmp_path, monkeypatch):
                                imitation_action_draws=4)
     assert imitation_success(config, "reach").episodes == 1
     assert [acting.action_draws for acting in seen] == [4]
+
+
+def test_the_check_collects_with_the_adroit_expert_it_is_given_apart(tmp_path):
+    config = ExpertBenchConfig(tasks=("adroit-pen", "reach"), env_kwargs={"image_size": 32, "num_points": 32},
+                               workers=1, imitation_demos=1, imitation_episodes=1, imitation_steps=2,
+                               workdir=str(tmp_path), expert="controller")
+    assert config.settings("adroit-pen").kind == "controller"
+    assert config.settings("reach").kind is None  # Meta-World: its one scripted expert
+    imitation_success(config, "adroit-pen")
+    dataset = DemoDataset.open(tmp_path / "data" / "adroit-pen_controller")
+    assert dataset.metadata.collections[0].expert == "controller"
+    assert (tmp_path / "runs" / "adroit-pen_mp1-state_d1_controller" / "policy.pt").exists()
+
+
+def test_the_bench_refuses_an_unknown_expert_kind():
+    with pytest.raises(ValueError, match="expert must be one of"):
+        ExpertBenchConfig(expert="oracle")
