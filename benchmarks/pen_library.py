@@ -9,7 +9,7 @@
    by how far the best ``hold_steps`` steps of the episode are from the env's success
    (orientation dot product above 0.95, centre within 7.5 cm; a margin asked for both) plus
    ``tracking`` x the mean squared change from the starting sequence, which keeps neighbours
-   alike so that their bilinear blend still works between nodes.
+   alike, so that a node's sequence also serves targets near it.
 3. A retry: a node whose sequence meets its target on fewer than ``retry_below`` steps is
    optimised again from each other solved neighbour, keeping the best.
 
@@ -57,8 +57,8 @@ class PenLibraryConfig:
         hold_steps: how many of the episode's best steps the score reads.
         retry_below: nodes meeting their target on fewer steps are retried from other neighbours.
         search_seed: seed of the random search.
-        check_layouts: seeded layouts (1000, 1001, ...) on which the finished library's blend is
-            checked (0: no check).
+        check_layouts: seeded layouts (1000, 1001, ...) on which the finished library is checked,
+            its nearest node and its bilinear blend (0: no check).
     """
 
     out: str = str(DEFAULT_LIBRARY)
@@ -215,22 +215,24 @@ def build(config: PenLibraryConfig) -> SequenceLibrary:
         library.save(out)
     print(f"{int(library.solved.sum())} nodes solved, {int((library.hold_steps > 0).sum())} meet their target; "
           f"this call took {time.perf_counter() - started:.0f} s")
-    if config.check_layouts:
-        wins = check(library, rollouts, range(CHECK_FIRST_LAYOUT, CHECK_FIRST_LAYOUT + config.check_layouts))
+    layouts = range(CHECK_FIRST_LAYOUT, CHECK_FIRST_LAYOUT + config.check_layouts)
+    for blend, name in ((False, "the nearest node"), (True, "the bilinear blend")) if config.check_layouts else ():
+        wins = check(library, rollouts, layouts, blend)
         low, high = wilson_interval(wins, config.check_layouts)
-        print(f"the blend meets the target in {wins}/{config.check_layouts} seeded layouts "
+        print(f"{name} meets the target in {wins}/{config.check_layouts} seeded layouts "
               f"[{100 * low:.1f}-{100 * high:.1f}] (layouts {CHECK_FIRST_LAYOUT}-, on the true model)")
     return library
 
 
-def check(library: SequenceLibrary, rollouts: PenRollouts, layouts: range) -> int:
-    """In how many of the env's seeded ``layouts`` the library's blend meets the target."""
+def check(library: SequenceLibrary, rollouts: PenRollouts, layouts: range, blend: bool = False) -> int:
+    """In how many of the env's seeded ``layouts`` the library (its nearest node, or with
+    ``blend`` its bilinear blend) meets the target."""
     env = AdroitEnv("pen", state_obs=False)
     wins = 0
     for layout in layouts:
         env.reset(seed=layout)
         roll, pitch = target_roll_pitch(env.model.body_quat[env.model.body("target").id])
-        sequence = library.sequence(roll, pitch)
+        sequence = library.sequence(roll, pitch, blend)
         wins += int(success_steps(*rollouts.measure(sequence[None], roll, pitch))[0] > 0)
     env.close()
     return wins

@@ -5,8 +5,11 @@ does not touch the dynamics: a sequence of actions that turns the pen to one tar
 in every episode with that target. The library holds one 200-step sequence per node of a grid
 over the target's roll and pitch (the env draws both uniformly in [-1, 1] rad), made by
 continuation (:mod:`benchmarks.pen_library`: each node starts from a solved neighbour's
-sequence and is penalised for leaving it), so neighbouring sequences differ little and the
-expert can blend the four nodes around a target bilinearly. Same target, same step: same
+sequence and is penalised for leaving it), so neighbouring sequences differ little. The
+expert plays the sequence of the node nearest to its target, which still meets a target up
+to half the grid's spacing away; the bilinear blend of the four nodes around the target
+(``blend=True``) mixes sequences that each work into one that often does not (``d2a bench
+pen-library`` checks both on the same seeded layouts). Same target, same step: same
 action, unlike the planner, which finds a new way in every episode.
 """
 
@@ -81,20 +84,24 @@ class SequenceLibrary:
         """(n, n) bool: the nodes that hold a sequence."""
         return ~np.isnan(self.sequences).any(axis=(2, 3))
 
-    def action(self, roll: float, pitch: float, step: int) -> np.ndarray:
-        """The bilinear blend of the four nodes around (roll, pitch) at ``step`` (the last
-        step's action held after the sequence ends; angles outside the grid clamped to it)."""
-        return self._blend(roll, pitch, min(int(step), self.sequences.shape[2] - 1))
+    def action(self, roll: float, pitch: float, step: int, blend: bool = False) -> np.ndarray:
+        """The action at ``step`` of the node nearest to (roll, pitch), or with ``blend`` the
+        bilinear blend of the four nodes around it (the last step's action held after the
+        sequence ends; angles outside the grid clamped to it)."""
+        return self._at(roll, pitch, min(int(step), self.sequences.shape[2] - 1), blend)
 
-    def sequence(self, roll: float, pitch: float) -> np.ndarray:
-        """The blend's whole sequence (steps, actuators) for (roll, pitch): every ``action`` at once."""
-        return self._blend(roll, pitch, slice(None))
+    def sequence(self, roll: float, pitch: float, blend: bool = False) -> np.ndarray:
+        """The whole sequence (steps, actuators) for (roll, pitch): every ``action`` at once."""
+        return self._at(roll, pitch, slice(None), blend)
 
-    def _blend(self, roll: float, pitch: float, steps: int | slice) -> np.ndarray:
+    def _at(self, roll: float, pitch: float, steps: int | slice, blend: bool) -> np.ndarray:
         if not self.solved.all():
             raise ValueError(f"the library has {int((~self.solved).sum())} unsolved nodes: finish its build")
         spacing, last = self.axis[1] - self.axis[0], len(self.axis) - 1
         position = np.clip((np.array([roll, pitch]) - self.axis[0]) / spacing, 0.0, last)
+        if not blend:
+            i, j = np.rint(position).astype(int)
+            return self.sequences[i, j, steps]
         low = np.minimum(position.astype(int), last - 1)
         u, v = position - low
         i, j = low

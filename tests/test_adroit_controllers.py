@@ -93,7 +93,7 @@ def test_the_default_experts_and_refusals():
 
 
 def test_the_pen_controller_plays_the_library_at_the_target_and_the_step_of_the_state():
-    """Its action: the shipped library's blend for the target the env shows, at the step the
+    """Its action: the shipped library's nearest node for the target the env shows, at the step the
     state's clock gives (5 physics steps of 2 ms per control step)."""
     env = AdroitEnv("pen", state_obs=False, physics_obs=True)
     env.reset(seed=0)

@@ -24,18 +24,30 @@ def linear_library(steps: int = 3) -> SequenceLibrary:
     return library
 
 
+def test_the_nearest_node_is_the_one_closest_in_angle():
+    library = linear_library()
+    rng = np.random.default_rng(3)
+    for roll, pitch, step in zip(*rng.uniform(-1.2, 1.2, (2, 20)), rng.integers(0, 5, 20), strict=True):
+        i, j = np.abs(library.axis - roll).argmin(), np.abs(library.axis - pitch).argmin()  # angles beyond clamp
+        expected = 2 * library.axis[i] - library.axis[j] + 0.1 * min(step, 2)  # the last step held
+        assert library.action(roll, pitch, step) == pytest.approx([expected] * 2)
+    assert library.action(0.3, -0.7, 1) == pytest.approx([2 * 0.5 + 0.5 + 0.1] * 2)
+    assert np.array_equal(library.sequence(0.3, -0.7), np.stack([library.action(0.3, -0.7, t) for t in range(3)]))
+
+
 def test_the_blend_of_the_four_nodes_around_a_target_matches_a_hand_computation():
     library = linear_library()
-    assert library.action(0.3, -0.7, 1) == pytest.approx([2 * 0.3 + 0.7 + 0.1] * 2)
-    assert library.action(5.0, -5.0, 1) == pytest.approx([2 * 1.0 + 1.0 + 0.1] * 2)  # clamped to the grid
-    assert library.action(0.0, 0.0, 99) == pytest.approx([0.2] * 2)  # the last step held
-    assert np.array_equal(library.sequence(0.3, -0.7), np.stack([library.action(0.3, -0.7, t) for t in range(3)]))
+    assert library.action(0.3, -0.7, 1, blend=True) == pytest.approx([2 * 0.3 + 0.7 + 0.1] * 2)
+    assert library.action(5.0, -5.0, 1, blend=True) == pytest.approx([2 * 1.0 + 1.0 + 0.1] * 2)  # clamped
+    assert library.action(0.0, 0.0, 99, blend=True) == pytest.approx([0.2] * 2)  # the last step held
+    assert np.array_equal(library.sequence(0.3, -0.7, blend=True),
+                          np.stack([library.action(0.3, -0.7, t, blend=True) for t in range(3)]))
     # a hand bilinear blend of arbitrary corner values
     library.sequences[:] = np.random.default_rng(1).normal(size=library.sequences.shape)
     u, v = (0.3 + 1.0) / 0.5 - 2, (-0.7 + 1.0) / 0.5 - 0  # cell (2, 0) of a 0.5-rad grid
     c = library.sequences[2:4, 0:2, 1]
     expected = (1 - u) * (1 - v) * c[0, 0] + (1 - u) * v * c[0, 1] + u * (1 - v) * c[1, 0] + u * v * c[1, 1]
-    assert library.action(0.3, -0.7, 1) == pytest.approx(expected)
+    assert library.action(0.3, -0.7, 1, blend=True) == pytest.approx(expected)
 
 
 def test_an_unfinished_library_is_refused_and_a_saved_one_reads_back(tmp_path):
