@@ -54,6 +54,8 @@ from typing import Any, TypeVar
 
 from tqdm import tqdm
 
+import d2a_envs
+from collectors.adroit_experts import EXPERT_KINDS
 from collectors.atomic import DirectoryBusyError, atomic_write_text, exclusive_writer
 from collectors.collect import CollectConfig, collect, dart_tag
 from collectors.evaluation import honest_protocol, paper_protocol
@@ -97,6 +99,9 @@ class SuccessBenchConfig:
     # DART noise of the demonstrations (d2a collect --dart-noise): their own data set, world
     # models and cells (``_dart<std>``); 0: plain demonstrations.
     dart_noise: float = 0.0
+    # The Adroit expert of the demonstrations and rollouts (d2a collect --expert: controller or
+    # planner): their own data set, world models and cells (``_<kind>``); None: the task's default.
+    expert: str | None = None
     # Every evaluation (periodic and final) acts on the mean of this many chunks per plan
     # (d2a eval --action-draws; cells ``_draws<k>``): Adroit's DART policies need it.
     action_draws: int = 1
@@ -127,6 +132,12 @@ class SuccessBenchConfig:
             raise ValueError(f"a pool of {self.pool} demonstrations cannot give cells {self.demos}")
         if self.action_draws < 1:
             raise ValueError(f"action_draws must be at least 1, not {self.action_draws}")
+        if self.expert is not None:
+            if self.expert not in EXPERT_KINDS:
+                raise ValueError(f"expert must be one of {EXPERT_KINDS}, not {self.expert!r}")
+            others = [task for task in self.tasks if d2a_envs.get_task(task).suite != "adroit"]
+            if others:
+                raise ValueError(f"the expert ({self.expert}) applies to Adroit tasks; {others} have one expert each")
 
 
 # The dense clouds that the 128x128x32 world model reads (and the Table IV benches used).
@@ -210,16 +221,16 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     (``collect`` refuses a data set collected with other env settings)."""
     env_kwargs = _data_env_kwargs(config)
     images = f"_rgb{env_kwargs['rgb_image_size']}" if "rgb_image_size" in env_kwargs else ""
-    data = Path(config.workdir) / "data" / f"{task}{_dart_tag(config)}{images}"
+    data = Path(config.workdir) / "data" / f"{task}{_demonstrations_tag(config)}{images}"
     _when_free(lambda: collect(CollectConfig(
         tasks=(task,), out=str(data), episodes=config.pool or config.demos, seed=0, append=True,
-        env_kwargs=env_kwargs, dart_noise=config.dart_noise,
+        env_kwargs=env_kwargs, dart_noise=config.dart_noise, expert=config.expert,
         progress=config.ray_address is None, ray_address=config.ray_address,
     )), f"{task} demonstrations")
     if config.wm_rollouts:
         _when_free(lambda: collect(CollectConfig(
             tasks=(task,), out=str(data), episodes=config.wm_rollouts, seed=ROLLOUT_SEED, append=True,
-            env_kwargs=env_kwargs, action_noise=config.rollout_noise, keep_failures=True,
+            env_kwargs=env_kwargs, action_noise=config.rollout_noise, keep_failures=True, expert=config.expert,
             progress=config.ray_address is None, ray_address=config.ray_address,
         )), f"{task} rollouts")
     return data
@@ -227,7 +238,7 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
 
 def _world_model(config: SuccessBenchConfig, task: str, data: Path, device: str = "cpu") -> Path:
     path = (Path(config.workdir) / "world_models"
-            / f"{task}{_demos_tag(config)}{_dart_tag(config)}{_rollouts_tag(config)}.pt")
+            / f"{task}{_demos_tag(config)}{_demonstrations_tag(config)}{_rollouts_tag(config)}.pt")
     _when_free(lambda: train_world_model(TrainWorldModelConfig(
         data=str(data), out=str(path), model=config.world_model, steps=config.world_model_steps, demos=config.demos,
         with_rollouts=config.wm_rollouts > 0,
@@ -309,16 +320,17 @@ def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> s
     fresh = "_fresh" if config.eval_layouts == "fresh" else ""
     rollouts = _rollouts_tag(config) if uses_imagination(algo) else ""
     draws = f"_draws{config.action_draws}" if config.action_draws > 1 else ""
-    return (f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_demos_tag(config)}{_dart_tag(config)}{draws}"
-            f"{rollouts}{_preset_tag(config.policy)}")
+    return (f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_demos_tag(config)}"
+            f"{_demonstrations_tag(config)}{draws}{rollouts}{_preset_tag(config.policy)}")
 
 
 def _rollouts_tag(config: SuccessBenchConfig) -> str:
     return f"_wmr{config.wm_rollouts}n{config.rollout_noise:g}" if config.wm_rollouts else ""
 
 
-def _dart_tag(config: SuccessBenchConfig) -> str:
-    return dart_tag(config.dart_noise)
+def _demonstrations_tag(config: SuccessBenchConfig) -> str:
+    """Which demonstrations: their DART noise, and the Adroit expert when one was chosen."""
+    return dart_tag(config.dart_noise) + (f"_{config.expert}" if config.expert else "")
 
 
 def _demos_tag(config: SuccessBenchConfig) -> str:

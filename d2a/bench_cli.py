@@ -151,7 +151,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
         eval_layouts=args.eval_layouts, demos=args.demos, pool=args.pool, cells=args.cells,
         wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise, dart_noise=args.dart_noise,
-        action_draws=args.action_draws, rgb_image_size=args.rgb_image_size,
+        action_draws=args.action_draws, rgb_image_size=args.rgb_image_size, expert=args.expert,
     ))
 
 
@@ -359,6 +359,9 @@ def add_bench_commands(commands: Any) -> None:
     bench_success.add_argument("--dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
                                help="collect the demonstrations with DART noise (d2a collect --dart-noise); their "
                                     "data, world models and cells are named apart")
+    bench_success.add_argument("--expert", choices=EXPERT_KINDS, default=None,
+                               help="the Adroit tasks' expert (default: each task's own); its data, world models "
+                                    "and cells are named apart")
     bench_success.add_argument("--action-draws", type=POSITIVE, default=None, metavar="K",
                                help="every evaluation acts on the mean of K chunks per plan (d2a eval "
                                     "--action-draws); cells named apart")

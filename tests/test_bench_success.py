@@ -104,6 +104,17 @@ def test_dart_cells_train_on_their_own_demonstrations(tmp_path):
     assert bench.cell_path(config, "reach", "mp1", 0).name.startswith("reach_mp1_s0_e1_d1_dart0.05_")
 
 
+def test_cells_of_a_chosen_adroit_expert_train_on_its_own_demonstrations(tmp_path):
+    config = _tiny_bench(tmp_path, tasks=("adroit-pen",), expert="controller")
+    bench.run(config)
+    assert DemoDataset.open(tmp_path / "data" / "adroit-pen_controller").metadata.collections[0].expert == "controller"
+    assert bench.cell_path(config, "adroit-pen", "mp1", 0).name.startswith("adroit-pen_mp1_s0_e1_d1_controller_")
+    with pytest.raises(ValueError, match=r"applies to Adroit tasks; \['reach'\]"):
+        _tiny_bench(tmp_path, tasks=("adroit-pen", "reach"), expert="planner")
+    with pytest.raises(ValueError, match="expert must be one of"):
+        _tiny_bench(tmp_path, tasks=("adroit-pen",), expert="oracle")
+
+
 def test_cells_acting_on_several_draws_evaluate_so_and_are_named_apart(tmp_path, monkeypatch):
     import d2a_agents.policy.train as training
 
