@@ -153,11 +153,11 @@ def _distances(task: str, seed: int, config: ExpertBenchConfig) -> str:
 def failure_reason(result: EvaluationResult, config: ExpertBenchConfig) -> str:
     """One line on why the expert failed: late successes, else the distances of one failure."""
     failed = [seed for seed, success in zip(result.seeds, result.successes, strict=True) if not success]
-    late = evaluate(
-        _expert(config, result.task), result.task, len(result.seeds), result.seeds[0], _env_kwargs(config, result.task),
-        workers=config.workers, max_steps=config.late_max_steps, progress=False, ray_address=config.ray_address,
-    )
-    late_steps = dict(zip(late.seeds, late.success_steps, strict=True))
+    late_steps = {  # the failed episodes alone, one at a time
+        seed: evaluate(_expert(config, result.task), result.task, 1, seed, _env_kwargs(config, result.task),
+                       max_steps=config.late_max_steps, progress=False, ray_address=config.ray_address).success_steps[0]
+        for seed in failed
+    }
     parts = []
     succeeded_late = {seed: late_steps[seed] for seed in failed if late_steps[seed] is not None}
     if succeeded_late:

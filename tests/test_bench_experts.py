@@ -68,3 +68,24 @@ def test_the_check_collects_with_the_adroit_expert_it_is_given_apart(tmp_path):
 def test_the_bench_refuses_an_unknown_expert_kind():
     with pytest.raises(ValueError, match="expert must be one of"):
         ExpertBenchConfig(expert="oracle")
+
+
+def test_failures_are_rerun_alone_with_the_longer_limit(monkeypatch):
+    """Reach's expert needs more than 3 steps: both episodes fail at 3 and succeed within 100,
+    each rerun once, with its own seed."""
+    import benchmarks.experts
+    from benchmarks.experts import _env_kwargs, _expert, failure_reason
+    from collectors.evaluation import evaluate
+
+    config = ExpertBenchConfig(tasks=("reach",), episodes=2, seed=5, max_steps=3, late_max_steps=100, workers=1,
+                               env_kwargs={"image_size": 32, "num_points": 32})
+    result = evaluate(_expert(config, "reach"), "reach", 2, 5, _env_kwargs(config, "reach"), max_steps=3,
+                      progress=False)
+    assert result.successes == [False, False]
+    reruns = []
+    real = benchmarks.experts.evaluate
+    monkeypatch.setattr(benchmarks.experts, "evaluate",
+                        lambda *args, **kwargs: reruns.append(args[2:4]) or real(*args, **kwargs))
+    reason = failure_reason(result, config)
+    assert reruns == [(1, 5), (1, 6)]
+    assert reason.startswith("late success within 100 steps (seed 5 at step ") and "seed 6 at step " in reason
