@@ -9,8 +9,8 @@ at (Meta-World): how close the hand got to the object and the object to the goal
 state, so perception plays no part; ``imitation_algo="dp3-state"``: the diffusion expert)
 trained on that many of the expert's demonstrations and evaluated on ``imitation_episodes``
 new layouts; an expert whose actions are not a function of the state shows a wide gap.
-Last, the same episodes are evaluated in one process and with ``workers`` processes, side by
-side.
+Last, with ``workers`` > 1, the same episodes are evaluated in one process and with ``workers``
+processes, side by side.
 """
 
 from __future__ import annotations
@@ -251,6 +251,13 @@ def _run(config: ExpertBenchConfig) -> list[dict[str, object]]:
     if not below:
         print("- none")
 
+    if config.workers > 1:
+        _print_speedup(config)
+    return rows
+
+
+def _print_speedup(config: ExpertBenchConfig) -> None:
+    """The one-process against ``workers``-process timing, as a markdown table."""
     load = os.getloadavg()[0]
     timing = speedup(config)
     print(
@@ -265,7 +272,6 @@ def _run(config: ExpertBenchConfig) -> list[dict[str, object]]:
             f"| {row['episodes']} | {row['single']:.1f} | {row['parallel']:.1f} | "
             f"{row['single'] / row['parallel']:.2f}x | {row['same']} |"
         )
-    return rows
 
 
 if __name__ == "__main__":

@@ -89,3 +89,13 @@ def test_failures_are_rerun_alone_with_the_longer_limit(monkeypatch):
     reason = failure_reason(result, config)
     assert reruns == [(1, 5), (1, 6)]
     assert reason.startswith("late success within 100 steps (seed 5 at step ") and "seed 6 at step " in reason
+
+
+def test_one_worker_skips_the_parallel_timing(capsys):
+    from benchmarks.experts import run
+
+    rows = run(ExpertBenchConfig(tasks=("reach",), episodes=1, workers=1, progress=False,
+                                 env_kwargs={"image_size": 32, "num_points": 32}))
+    assert [row["task"] for row in rows] == ["reach"]
+    out = capsys.readouterr().out
+    assert "| reach |" in out and "Parallel evaluation" not in out
