@@ -28,8 +28,7 @@ import torch
 from tqdm import tqdm
 
 import d2a_envs
-from collectors.adroit_experts import EXPERT_KINDS
-from collectors.collect import CollectConfig, collect, dart_tag
+from collectors.collect import CollectConfig, collect, demonstrations_tag
 from collectors.envs import STATE_KEY, make_torchrl_env
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol
 from collectors.experts import ExpertSettings, expert_env_kwargs, make_expert
@@ -90,9 +89,7 @@ class ExpertBenchConfig:
         if self.imitation_algo not in STATE_ALGORITHMS:
             raise ValueError(f"imitation_algo must be a state policy, one of {list(STATE_ALGORITHMS)}; "
                              f"got {self.imitation_algo!r}")
-        if self.expert not in (None, *EXPERT_KINDS):
-            raise ValueError(f"expert must be one of {EXPERT_KINDS} (or None: each task's default); "
-                             f"got {self.expert!r}")
+        ExpertSettings(kind=self.expert)  # an unknown kind fails here
 
     def settings(self, task: str) -> ExpertSettings:
         """The expert of ``task``: ``expert`` on an Adroit task; Meta-World tasks have one scripted expert."""
@@ -105,7 +102,7 @@ def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
     (collected with ``imitation_dart_noise``), its final checkpoint on ``imitation_episodes``
     new layouts, acting on the mean of ``imitation_action_draws``."""
     kind = config.settings(task).kind
-    tag = dart_tag(config.imitation_dart_noise) + (f"_{kind}" if kind else "")
+    tag = demonstrations_tag(config.imitation_dart_noise, kind)
     data = Path(config.workdir) / "data" / f"{task}{tag}"
     collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.imitation_demos, append=True,
                           env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise, expert=kind,

@@ -215,8 +215,10 @@ def build(config: PenLibraryConfig) -> SequenceLibrary:
         library.save(out)
     print(f"{int(library.solved.sum())} nodes solved, {int((library.hold_steps > 0).sum())} meet their target; "
           f"this call took {time.perf_counter() - started:.0f} s")
+    if not config.check_layouts:
+        return library
     layouts = range(CHECK_FIRST_LAYOUT, CHECK_FIRST_LAYOUT + config.check_layouts)
-    for blend, name in ((False, "the nearest node"), (True, "the bilinear blend")) if config.check_layouts else ():
+    for blend, name in ((False, "the nearest node"), (True, "the bilinear blend")):
         wins = check(library, rollouts, layouts, blend)
         low, high = wilson_interval(wins, config.check_layouts)
         print(f"{name} meets the target in {wins}/{config.check_layouts} seeded layouts "

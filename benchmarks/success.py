@@ -55,10 +55,10 @@ from typing import Any, TypeVar
 from tqdm import tqdm
 
 import d2a_envs
-from collectors.adroit_experts import EXPERT_KINDS
 from collectors.atomic import DirectoryBusyError, atomic_write_text, exclusive_writer
-from collectors.collect import CollectConfig, collect, dart_tag
+from collectors.collect import CollectConfig, collect, demonstrations_tag
 from collectors.evaluation import honest_protocol, paper_protocol
+from collectors.experts import ExpertSettings
 from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
 from d2a_agents.checkpoint import load_checkpoint
 from d2a_agents.policy.agent import reads_images, uses_imagination
@@ -132,12 +132,10 @@ class SuccessBenchConfig:
             raise ValueError(f"a pool of {self.pool} demonstrations cannot give cells {self.demos}")
         if self.action_draws < 1:
             raise ValueError(f"action_draws must be at least 1, not {self.action_draws}")
-        if self.expert is not None:
-            if self.expert not in EXPERT_KINDS:
-                raise ValueError(f"expert must be one of {EXPERT_KINDS}, not {self.expert!r}")
-            others = [task for task in self.tasks if d2a_envs.get_task(task).suite != "adroit"]
-            if others:
-                raise ValueError(f"the expert ({self.expert}) applies to Adroit tasks; {others} have one expert each")
+        ExpertSettings(kind=self.expert)  # an unknown kind fails here
+        others = [task for task in self.tasks if d2a_envs.get_task(task).suite != "adroit"]
+        if self.expert is not None and others:
+            raise ValueError(f"the expert ({self.expert}) applies to Adroit tasks; {others} have one expert each")
 
 
 # The dense clouds that the 128x128x32 world model reads (and the Table IV benches used).
@@ -330,7 +328,7 @@ def _rollouts_tag(config: SuccessBenchConfig) -> str:
 
 def _demonstrations_tag(config: SuccessBenchConfig) -> str:
     """Which demonstrations: their DART noise, and the Adroit expert when one was chosen."""
-    return dart_tag(config.dart_noise) + (f"_{config.expert}" if config.expert else "")
+    return demonstrations_tag(config.dart_noise, config.expert)
 
 
 def _demos_tag(config: SuccessBenchConfig) -> str:

@@ -103,9 +103,10 @@ PLAIN_MAX_ATTEMPTS_FACTOR = 3
 DART_MAX_ATTEMPTS_FACTOR = 10
 
 
-def dart_tag(noise: float) -> str:
-    """The suffix that names data, world models and runs made from DART demonstrations apart."""
-    return f"_dart{noise:g}" if noise else ""
+def demonstrations_tag(dart_noise: float, expert: str | None = None) -> str:
+    """The suffix that names data, world models and runs apart by their demonstrations: made with
+    DART noise (``_dart<std>``), or by a chosen Adroit expert (``_<kind>``)."""
+    return (f"_dart{dart_noise:g}" if dart_noise else "") + (f"_{expert}" if expert else "")
 
 
 def _open_output(config: CollectConfig) -> DemoDataset:

@@ -12,7 +12,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 
 import d2a_envs
-from collectors.adroit_experts import AdroitExpert, default_expert_kind
+from collectors.adroit_experts import EXPERT_KINDS, AdroitExpert, default_expert_kind
 from collectors.envs import STATE_KEY
 from collectors.storage import EXPERT_ACTION_KEY
 
@@ -110,6 +110,8 @@ class ExpertSettings:
     dart_noise: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.kind not in (None, *EXPERT_KINDS):
+            raise ValueError(f"expert must be one of {EXPERT_KINDS} (or None: each task's default), not {self.kind!r}")
         if self.action_noise and self.dart_noise:
             raise ValueError("choose one of action noise (rollouts) and DART noise (demonstrations)")
 
