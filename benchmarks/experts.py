@@ -101,20 +101,38 @@ def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
     preset, one thread) on ``imitation_demos`` of the expert's demonstrations of ``task``
     (collected with ``imitation_dart_noise``), its final checkpoint on ``imitation_episodes``
     new layouts, acting on the mean of ``imitation_action_draws``."""
-    kind = config.settings(task).kind
-    tag = demonstrations_tag(config.imitation_dart_noise, kind)
+    tag = demonstrations_tag(config.imitation_dart_noise, config.settings(task).kind)
     data = Path(config.workdir) / "data" / f"{task}{tag}"
-    collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.imitation_demos, append=True,
-                          env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise, expert=kind,
-                          progress=False))
-    preset = POLICY_PRESETS["cpu"]
+    collect_demonstrations(config, task, data)
     run = Path(config.workdir) / "runs" / f"{task}_{config.imitation_algo}_d{config.imitation_demos}{tag}"
+    train_imitation(config, task, data, run, config.imitation_demos)
+    return evaluate_imitation(config, task, run)
+
+
+def collect_demonstrations(config: ExpertBenchConfig, task: str, data: Path) -> None:
+    """The check's ``imitation_demos`` demonstrations of ``task`` in ``data`` (resumes)."""
+    collect(CollectConfig(tasks=(task,), out=str(data), episodes=config.imitation_demos, append=True,
+                          env_kwargs=config.env_kwargs, dart_noise=config.imitation_dart_noise,
+                          expert=config.settings(task).kind, progress=False))
+
+
+def train_imitation(config: ExpertBenchConfig, task: str, data: Path, run: Path, episodes: int) -> None:
+    """Train (or resume) the check's state policy on the first ``episodes`` episodes of ``data``."""
+    preset = POLICY_PRESETS["cpu"]
     train_policy(TrainPolicyConfig.from_preset(
         preset, data=str(data), out=str(run), policy=dataclasses.replace(preset.policy, algo=config.imitation_algo),
-        steps=config.imitation_steps, demos=config.imitation_demos, eval_episodes=0, threads=1, progress=False))
+        steps=config.imitation_steps, demos=episodes, eval_episodes=0, threads=1, progress=False))
+
+
+def evaluate_imitation(config: ExpertBenchConfig, task: str, run: Path) -> EvaluationResult:
+    """The final checkpoint of ``run`` on the check's ``imitation_episodes`` new layouts."""
     return evaluate_checkpoint(run, task, config.imitation_episodes, IMITATION_SEED, workers=config.workers,
                                end_on_success=True, progress=False, ray_address=config.ray_address,
-                               acting=Acting(action_draws=config.imitation_action_draws))
+                               acting=imitation_acting(config))
+
+
+def imitation_acting(config: ExpertBenchConfig) -> Acting:
+    return Acting(action_draws=config.imitation_action_draws)
 
 
 def _expert(config: ExpertBenchConfig, task: str) -> functools.partial:

@@ -24,12 +24,13 @@ from typing import Any
 import gymnasium as gym
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
+from torchrl.envs import InitTracker
 from tqdm import tqdm
 
 import d2a_envs
 from collectors.atomic import exclusive_writer, holds_only_lock
 from collectors.envs import make_torchrl_env
-from collectors.experts import ExpertSettings, expert_env_kwargs, expert_name, make_expert
+from collectors.experts import ExpertSettings, Student, expert_env_kwargs, expert_name, make_expert
 from collectors.ray_jobs import JobsLost, Lost, as_completed, ray_connection
 from collectors.storage import (
     CollectionRecord,
@@ -65,6 +66,8 @@ class CollectConfig:
             :func:`collectors.adroit_experts.default_expert_kind`); Meta-World has one.
         dart_noise: std of Gaussian noise on the executed actions while the stored labels stay
             the expert's (DART): demonstrations that also show how the expert recovers.
+        student: a policy that acts while the expert labels (DAgger); every attempt is kept
+            (``episodes`` counts attempts) and, labelled, trains policies like demonstrations.
         ray_address: run the attempts on Ray (``"local"``, ``"auto"`` or a cluster address);
             ``None``: in this process.
     """
@@ -84,10 +87,15 @@ class CollectConfig:
     keep_failures: bool = False
     expert: str | None = None
     dart_noise: float = 0.0
+    student: Student | None = None
 
     @property
     def expert_settings(self) -> ExpertSettings:
-        return ExpertSettings(self.expert, self.action_noise, self.dart_noise)
+        return ExpertSettings(self.expert, self.action_noise, self.dart_noise, self.student)
+
+    @property
+    def keeps_every_attempt(self) -> bool:
+        return self.keep_failures or self.student is not None
 
     @property
     def attempts_factor(self) -> int:
@@ -124,6 +132,7 @@ def _open_output(config: CollectConfig) -> DemoDataset:
 def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> CollectionRecord:
     """The record this run continues: the same task and seed resumes, anything else is new."""
     expert = expert_name(task, config.expert)
+    student = None if config.student is None else config.student.name
     env_kwargs = json.loads(json.dumps(_env_kwargs(config)))  # as stored: tuples become lists
     known = dataset.metadata.tasks.setdefault(task, env_kwargs)
     if known != env_kwargs:
@@ -135,12 +144,14 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
         if record.task != task:
             continue
         if record.seed == config.seed:
-            settings = (record.action_noise, record.keep_failures, record.expert or expert, record.dart_noise)
-            if settings != (config.action_noise, config.keep_failures, expert, config.dart_noise):
+            settings = (record.action_noise, record.keep_failures, record.expert or expert, record.dart_noise,
+                        record.student)
+            if settings != (config.action_noise, config.keep_failures, expert, config.dart_noise, student):
                 raise DatasetError(
                     f"{dataset.directory}: the {task} collection of seed {config.seed} used action noise "
-                    f"{record.action_noise}, keep_failures={record.keep_failures}, the {record.expert} expert and "
-                    f"DART noise {record.dart_noise}; resume it with those, or pass another --seed")
+                    f"{record.action_noise}, keep_failures={record.keep_failures}, the {record.expert} expert, "
+                    f"DART noise {record.dart_noise} and student {record.student}; resume it with those, or pass "
+                    "another --seed")
             return record
         # The attempts this run may make must not reuse a seed: that would store an episode twice.
         last = config.seed + config.episodes * config.attempts_factor - 1
@@ -151,7 +162,8 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
                 f"that collection or a seed from {record.seed + record.attempts} on"
             )
     record = CollectionRecord(task=task, seed=config.seed, action_noise=config.action_noise,
-                              keep_failures=config.keep_failures, expert=expert, dart_noise=config.dart_noise)
+                              keep_failures=config.keep_failures, expert=expert, dart_noise=config.dart_noise,
+                              student=student)
     dataset.metadata.collections.append(record)
     return record
 
@@ -168,7 +180,9 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
     max_attempts = config.episodes * config.attempts_factor
     if record.kept >= config.episodes:
         return record
-    env_kwargs = {**_env_kwargs(config), **expert_env_kwargs(spec.name)}  # the expert's extra input is not stored
+    # What the expert and the student read beyond the data set's observations (not stored).
+    env_kwargs = {**_env_kwargs(config), **expert_env_kwargs(spec.name),
+                  **(config.student.env_kwargs if config.student is not None else {})}
     first_seed = record.seed + record.attempts
     if config.ray_address is None:
         rollouts = _expert_episodes(spec.name, env_kwargs, first_seed, config.max_episode_steps,
@@ -182,7 +196,7 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
             episode_seed = int(rollout["episode_seed"][0])
             record.attempts = episode_seed - record.seed + 1
             success = bool(rollout["next", "success"].any())
-            if success or config.keep_failures:
+            if success or config.keeps_every_attempt:
                 index = len(dataset.metadata.episodes)
                 record.kept += 1  # before add_episode: its metadata write commits the episode and the count together
                 dataset.add_episode(
@@ -211,6 +225,8 @@ def _expert_episodes(task: str, env_kwargs: dict[str, Any], first_seed: int, max
                      expert: ExpertSettings) -> Iterator[TensorDictBase]:
     """The expert's episodes with seeds ``first_seed``, ``first_seed + 1``, ... (one rollout each)."""
     env = make_torchrl_env(task, env_kwargs, seed=first_seed)
+    if expert.student is not None:
+        env.append_transform(InitTracker())  # a student policy clears its state where an episode starts
     collector = Collector(
         env, make_expert(task, expert), frames_per_batch=max_steps, trajs_per_batch=1, traj_format="cat",
         total_frames=-1,
@@ -272,8 +288,9 @@ def collect(config: CollectConfig) -> DemoDataset:
         dataset = _open_output(config)
         for spec in specs:
             record = collect_task(dataset, spec.name, config)
-            kept = "episodes" if config.keep_failures else "successful episodes"
+            kept = "episodes" if config.keeps_every_attempt else "successful episodes"
             noise = (f", action noise {config.action_noise}" if config.action_noise else
-                     f", DART noise {config.dart_noise} on the executed actions" if config.dart_noise else "")
+                     f", DART noise {config.dart_noise} on the executed actions" if config.dart_noise else
+                     f", {config.student.name} acting, the expert labelling" if config.student is not None else "")
             print(f"{spec.name}: kept {record.kept} {kept} of {record.attempts} tried (seed {record.seed}{noise})")
     return dataset

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -55,33 +56,61 @@ def step_noise(seed: int, step: int, std: float, shape: tuple[int, ...]) -> np.n
     return np.random.default_rng([seed, step]).normal(0.0, std, size=shape)
 
 
+class ExpertLabel(TensorDictModuleBase):
+    """Keeps the expert's ``action`` under ``expert_action``, the label a data set stores, so
+    that what comes after it in a sequence may change the executed ``action``: DART noise
+    (:class:`ActionNoise`) or a student acting instead (:class:`Student`)."""
+
+    in_keys = ["action"]
+    out_keys = [EXPERT_ACTION_KEY]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict.set(EXPERT_ACTION_KEY, tensordict.get("action").clone())
+        return tensordict
+
+
 class ActionNoise(TensorDictModuleBase):
     """Adds Gaussian noise of standard deviation ``std`` to ``action`` (clipped to [-1, 1]).
 
     The noise of a step depends only on its episode's seed and step count, so a noisy
-    collection is reproducible and resumes exactly, on any worker. With ``keep_label`` the
-    expert's own action is kept under ``expert_action``: the env executes the noisy one and
-    the data set stores the expert's as the label (DART, Laskey et al., 2017: demonstrations
-    that visit the states a policy drifts to, labelled with how the expert recovers).
+    collection is reproducible and resumes exactly, on any worker. After an
+    :class:`ExpertLabel`, the env executes the noisy action and the data set stores the
+    expert's as the label (DART, Laskey et al., 2017: demonstrations that visit the states a
+    policy drifts to, labelled with how the expert recovers).
     """
 
-    def __init__(self, std: float, keep_label: bool = False) -> None:
+    def __init__(self, std: float) -> None:
         super().__init__()
         if not std >= 0:
             raise ValueError(f"action noise must be a standard deviation >= 0, not {std}")
-        self.std, self.keep_label = std, keep_label
+        self.std = std
         self.in_keys = ["action", "episode_seed", "step_count"]
-        self.out_keys = ["action", EXPERT_ACTION_KEY] if keep_label else ["action"]
+        self.out_keys = ["action"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
-        if self.keep_label:
-            tensordict.set(EXPERT_ACTION_KEY, action.clone())
         seed = int(tensordict.get("episode_seed").reshape(-1)[0])
         step = int(tensordict.get("step_count").reshape(-1)[0])
         noise = step_noise(seed, step, self.std, tuple(action.shape))
         tensordict.set("action", (action + torch.as_tensor(noise, dtype=action.dtype)).clamp(-1.0, 1.0))
         return tensordict
+
+
+@dataclass(frozen=True)
+class Student:
+    """A policy that acts while the expert only labels (DAgger, Ross et al., 2011): the data set
+    stores the expert's action in the states the student reaches, failures included.
+
+    Attributes:
+        name: what the data set records of the student (its checkpoint).
+        make: a picklable factory of the acting TorchRL policy; it reads ``is_init``, which
+            the collection env then provides.
+        env_kwargs: what the env must add for the student to see its observations (not stored).
+    """
+
+    name: str
+    make: Callable[[], TensorDictModuleBase]
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
 
 
 def expert_name(task: str, kind: str | None = None) -> str:
@@ -103,27 +132,33 @@ class ExpertSettings:
         kind: the Adroit expert, ``controller`` or ``planner`` (None: the task's default).
         action_noise: noise std on the executed and stored actions (rollouts for a world model).
         dart_noise: noise std on the executed actions only; the stored label stays the expert's.
+        student: a policy whose actions are executed instead; the stored label stays the expert's.
     """
 
     kind: str | None = None
     action_noise: float = 0.0
     dart_noise: float = 0.0
+    student: Student | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in (None, *EXPERT_KINDS):
             raise ValueError(f"expert must be one of {EXPERT_KINDS} (or None: each task's default), not {self.kind!r}")
-        if self.action_noise and self.dart_noise:
-            raise ValueError("choose one of action noise (rollouts) and DART noise (demonstrations)")
+        if sum((bool(self.action_noise), bool(self.dart_noise), self.student is not None)) > 1:
+            raise ValueError("choose one of action noise (rollouts), DART noise (demonstrations) and a student "
+                             "(DAgger)")
 
 
 def make_expert(task: str, settings: ExpertSettings = ExpertSettings()) -> TensorDictModuleBase:
     """The expert of ``task``: Meta-World's scripted policy, or the Adroit controller or planner;
-    with noise in ``settings``, its executed actions perturbed by :class:`ActionNoise`."""
+    with noise in ``settings``, its executed actions perturbed by :class:`ActionNoise`; with a
+    student, the student's actions executed and the expert's kept as labels."""
     spec = d2a_envs.get_task(task)
     name = expert_name(task, settings.kind)
     expert = ScriptedExpert(spec.name) if name == "scripted" else AdroitExpert(spec.name, name)
+    if settings.student is not None:
+        return TensorDictSequential(expert, ExpertLabel(), settings.student.make())
     if settings.dart_noise:
-        return TensorDictSequential(expert, ActionNoise(settings.dart_noise, keep_label=True))
+        return TensorDictSequential(expert, ExpertLabel(), ActionNoise(settings.dart_noise))
     if settings.action_noise:
         return TensorDictSequential(expert, ActionNoise(settings.action_noise))
     return expert

@@ -77,11 +77,13 @@ class CollectionRecord:
     keep_failures: bool = False  # every attempt stored, not only the successes
     expert: str | None = None  # scripted, controller or planner (None: collected before this was recorded)
     dart_noise: float = 0.0  # std of the noise on the executed actions; the stored labels are the expert's
+    student: str | None = None  # the policy that acted while the expert labelled (DAgger), if any
 
     @property
     def rollouts(self) -> bool:
-        """Whether this collection holds rollouts (noisy or failed), not demonstrations."""
-        return self.action_noise > 0 or self.keep_failures
+        """Whether this collection holds rollouts (noisy or failed, unlabelled), not demonstrations;
+        a student's episodes, failures included, carry the expert's labels and train policies."""
+        return self.student is None and (self.action_noise > 0 or self.keep_failures)
 
 
 @dataclass

@@ -48,11 +48,16 @@ def cmd_bench_experts(args: argparse.Namespace) -> None:
 
     base = ExpertBenchConfig()
     run(replace_given(base, tasks=tuple(args.task) if args.task else None, episodes=args.episodes,
-                       workers=args.workers, ray_address=args.ray, imitation_demos=args.imitation_demos,
-                       imitation_episodes=args.imitation_episodes, workdir=args.workdir,
-                       imitation_dart_noise=args.imitation_dart_noise,
-                       imitation_action_draws=args.imitation_action_draws, imitation_algo=args.imitation_algo,
-                       expert=args.expert))
+                       workers=args.workers, ray_address=args.ray, **imitation_fields(args)))
+
+
+def cmd_bench_dagger(args: argparse.Namespace) -> None:
+    from benchmarks.dagger import DaggerConfig, run
+
+    base = DaggerConfig()
+    check = replace_given(base.check, tasks=tuple(args.task) if args.task else None, workers=args.workers,
+                          **imitation_fields(args))
+    run(replace_given(base, check=check, rounds=args.rounds, episodes_per_round=args.episodes_per_round))
 
 
 def cmd_bench_tune_expert(args: argparse.Namespace) -> None:
@@ -197,6 +202,31 @@ def cmd_bench_ray(args: argparse.Namespace) -> None:
                        policy=replace_given(base.policy, steps=args.steps)))
 
 
+def add_imitation_options(parser: argparse.ArgumentParser) -> None:
+    """The learnability check's options (``bench experts``, ``bench dagger``)."""
+    parser.add_argument("--imitation-demos", type=NON_NEGATIVE, default=None,
+                        help="the learnability check: mp1-state trained on this many demonstrations (0: off)")
+    parser.add_argument("--imitation-algo", choices=STATE_ALGOS, default=None,
+                        help="the check's state policy (default mp1-state; dp3-state: the diffusion expert)")
+    parser.add_argument("--imitation-episodes", type=POSITIVE, default=None,
+                        help="its evaluation episodes on new layouts (default 100)")
+    parser.add_argument("--imitation-dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
+                        help="collect the check's demonstrations with DART noise (d2a collect --dart-noise)")
+    parser.add_argument("--imitation-action-draws", type=POSITIVE, default=None, metavar="K",
+                        help="its policy acts on the mean of K chunks per plan (d2a eval --action-draws)")
+    parser.add_argument("--workdir", default=None, help="the check's data and policies")
+    parser.add_argument("--expert", choices=EXPERT_KINDS, default=None,
+                        help="the Adroit expert (default: each task's own; Meta-World tasks keep theirs)")
+
+
+def imitation_fields(args: argparse.Namespace) -> dict[str, Any]:
+    """The learnability check's settings given on the command line (``add_imitation_options``)."""
+    return dict(imitation_demos=args.imitation_demos, imitation_episodes=args.imitation_episodes,
+                workdir=args.workdir, imitation_dart_noise=args.imitation_dart_noise,
+                imitation_action_draws=args.imitation_action_draws, imitation_algo=args.imitation_algo,
+                expert=args.expert)
+
+
 def add_bench_commands(commands: Any) -> None:
     """Add ``bench`` and its subcommands to the ``d2a`` command's subparsers."""
     bench = commands.add_parser("bench", help="benchmarks (print figures)").add_subparsers(dest="what", required=True)
@@ -210,21 +240,20 @@ def add_bench_commands(commands: Any) -> None:
     bench_experts.add_argument("--task", action="append", default=None, help="default: all 50 Meta-World tasks")
     bench_experts.add_argument("--episodes", type=POSITIVE, default=None)
     bench_experts.add_argument("--workers", type=POSITIVE, default=None)
-    bench_experts.add_argument("--imitation-demos", type=NON_NEGATIVE, default=None,
-                               help="the learnability check: mp1-state trained on this many demonstrations (0: off)")
-    bench_experts.add_argument("--imitation-algo", choices=STATE_ALGOS, default=None,
-                               help="the check's state policy (default mp1-state; dp3-state: the diffusion expert)")
-    bench_experts.add_argument("--imitation-episodes", type=POSITIVE, default=None,
-                               help="its evaluation episodes on new layouts (default 100)")
-    bench_experts.add_argument("--imitation-dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
-                               help="collect the check's demonstrations with DART noise (d2a collect --dart-noise)")
-    bench_experts.add_argument("--imitation-action-draws", type=POSITIVE, default=None, metavar="K",
-                               help="its policy acts on the mean of K chunks per plan (d2a eval --action-draws)")
-    bench_experts.add_argument("--workdir", default=None, help="the check's data and policies")
-    bench_experts.add_argument("--expert", choices=EXPERT_KINDS, default=None,
-                               help="the Adroit expert (default: each task's own; Meta-World tasks keep theirs)")
+    add_imitation_options(bench_experts)
     add_ray_option(bench_experts)
     bench_experts.set_defaults(func=cmd_bench_experts)
+
+    bench_dagger = bench.add_parser("dagger", help="DAgger from the learnability check: the state policy acts, the "
+                                                   "expert labels, a new policy per round")
+    bench_dagger.add_argument("--task", action="append", default=None, help="default adroit-door")
+    bench_dagger.add_argument("--rounds", type=NON_NEGATIVE, default=None, help="rounds after the first policy "
+                                                                                "(default 3)")
+    bench_dagger.add_argument("--episodes-per-round", type=POSITIVE, default=None,
+                              help="the policy's labelled episodes added per round (default 10)")
+    bench_dagger.add_argument("--workers", type=POSITIVE, default=None, help="evaluation workers (default 1)")
+    add_imitation_options(bench_dagger)
+    bench_dagger.set_defaults(func=cmd_bench_dagger)
 
     bench_tune = bench.add_parser("tune-expert", help="hill-climb an Adroit controller's settings on seeded "
                                                       "episodes (success, then speed)")

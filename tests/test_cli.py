@@ -132,6 +132,19 @@ def test_the_learnability_check_takes_its_state_policy(monkeypatch):
         main(["bench", "experts", "--imitation-algo", "mp1"])  # reads clouds: not a state reference
 
 
+def test_dagger_takes_the_checks_options_and_its_rounds(monkeypatch):
+    import benchmarks.dagger
+
+    seen = {}
+    monkeypatch.setattr(benchmarks.dagger, "run", lambda given: seen.setdefault("config", given))
+    main(["bench", "dagger", "--task", "adroit-hammer", "--rounds", "2", "--episodes-per-round", "5",
+          "--imitation-demos", "20", "--imitation-dart-noise", "0.1", "--expert", "planner", "--workdir", "w"])
+    config = seen["config"]
+    assert (config.rounds, config.episodes_per_round) == (2, 5)
+    assert config.check.tasks == ("adroit-hammer",) and config.check.imitation_demos == 20
+    assert (config.check.imitation_dart_noise, config.check.expert, config.check.workdir) == (0.1, "planner", "w")
+
+
 def test_the_cli_offers_every_kind_of_evaluation_layouts(captured):
     from d2a.cli_options import EVAL_LAYOUTS
     from d2a_agents.policy.train import EVAL_LAYOUTS as TRAINER_LAYOUTS
@@ -252,6 +265,7 @@ def test_defaults_live_in_the_configs_alone(collect_config):
     (["bench", "train"], "benchmarks.train", "TrainBenchConfig"),
     (["bench", "ablate", "--data", "d", "--task", "hammer"], "benchmarks.ablation", "AblationConfig"),
     (["bench", "ray"], "benchmarks.ray_scaling", "RayScalingConfig"),
+    (["bench", "dagger"], "benchmarks.dagger", "DaggerConfig"),
     (["bench", "wm-fit", "--world-model", "w", "--data", "d", "--demos", "5"], "benchmarks.world_model_fit",
      "WorldModelFitConfig"),
 ])

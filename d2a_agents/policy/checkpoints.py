@@ -16,6 +16,7 @@ from typing import Any
 from collectors.dataset import Normalizer
 from collectors.envs import EXPERT_FUTURE_KEY
 from collectors.evaluation import EvaluationResult, evaluate
+from collectors.experts import Student
 from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint
 from d2a_agents.policy.agent import (
     Policy,
@@ -98,6 +99,23 @@ def load_torchrl_policy(path: str | Path, acting: Acting = Acting()) -> TorchRLP
     return TorchRLPolicy(load_policy(path, acting=acting)[0])
 
 
+def _trained_task(path: str | Path, payload: dict[str, Any], task: str) -> str:
+    """The short name of ``task``; ValueError where the checkpoint was not trained on it."""
+    name = get_task(task).name
+    if name not in payload["env_kwargs"]:
+        raise ValueError(f"{path} was trained on {payload['tasks']}, not on {name}")
+    return name
+
+
+def checkpoint_student(path: str | Path, task: str, acting: Acting = Acting()) -> Student:
+    """A checkpoint's EMA policy as the acting student of a DAgger collection on ``task``
+    (:class:`~collectors.experts.Student`), in the env it was trained with."""
+    _, payload = load_policy(path, acting=acting)
+    name = _trained_task(path, payload, task)
+    path = policy_file(path).resolve()
+    return Student(str(path), functools.partial(load_torchrl_policy, path, acting), eval_env_kwargs(payload, name))
+
+
 def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
     """The env settings the policy was trained with (less the colour image where the policy reads
     none: drawing it would only cost time), plus its world model when it imagines, or the
@@ -133,9 +151,7 @@ def evaluate_checkpoint(
     ``ray_address``: see :func:`~collectors.evaluation.evaluate` (on Ray, the checkpoint and
     its world model must be readable on every node); ``acting``: see :class:`Acting`."""
     _, payload = load_policy(path, acting=acting)
-    name = get_task(task).name
-    if name not in payload["env_kwargs"]:
-        raise ValueError(f"{path} was trained on {payload['tasks']}, not on {name}")
+    name = _trained_task(path, payload, task)
     path = policy_file(path).resolve()  # a worker on Ray may start elsewhere
     max_steps = payload["env_kwargs"][name].get("max_episode_steps", DEFAULT_MAX_EPISODE_STEPS)
     return evaluate(functools.partial(load_torchrl_policy, path, acting), name, episodes, seed,

@@ -1,0 +1,90 @@
+"""DAgger: a student acts, the expert labels the states it reaches, the labelled episodes train."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from benchmarks.dagger import DAGGER_SEED, DaggerConfig, run_task
+from benchmarks.experts import ExpertBenchConfig
+from collectors.collect import CollectConfig, collect
+from collectors.experts import ExpertSettings, Student
+from collectors.storage import DatasetError, DemoDataset
+
+SMALL = {"image_size": 32, "num_points": 32}
+
+
+class StandStill(TensorDictModuleBase):
+    """A student that never moves the hand, and checks that the env marks where episodes start."""
+
+    in_keys = ["is_init"]
+    out_keys = ["action"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        assert tensordict.get("is_init").dtype == torch.bool
+        tensordict.set("action", torch.zeros(4))
+        return tensordict
+
+
+STILL = Student("stand-still", StandStill)
+
+
+def test_the_student_acts_and_the_expert_labels_each_state_it_reaches(tmp_path):
+    """The stored actions are the scripted expert's own in the stored states (recomputed here),
+    while the hand, driven by the student's zero actions, stays where it started."""
+    from metaworld.policies import ENV_POLICY_MAP
+
+    out = tmp_path / "dagger"
+    collect(CollectConfig(tasks=("reach",), out=str(out), episodes=2, env_kwargs=SMALL, student=STILL,
+                          max_episode_steps=30, progress=False))
+    dataset = DemoDataset.open(out)
+    record = dataset.metadata.collections[0]
+    assert record.student == "stand-still" and record.attempts == 2 and record.kept == 2  # failures kept
+    assert not any(e.success for e in dataset.metadata.episodes)
+    assert dataset.rollout_episodes() == [] and dataset.demonstrations() is dataset  # labelled: training data
+    episode = dataset.episode(0)
+    expert = ENV_POLICY_MAP["reach-v3"]()
+    labels = np.stack([np.clip(expert.get_action(state), -1, 1) for state in episode["state"].double().numpy()])
+    np.testing.assert_allclose(episode["action"].numpy(), labels, atol=1e-5)
+    assert np.abs(labels).max() > 0.1  # the expert would have moved
+    hand = episode["state"][:, :3]
+    assert float((hand - hand[0]).norm(dim=-1).max()) < 0.01  # the student did not
+
+
+def test_a_student_collection_resumes_only_with_the_same_student(tmp_path):
+    out = str(tmp_path / "dagger")
+    collect(CollectConfig(tasks=("reach",), out=out, episodes=1, env_kwargs=SMALL, student=STILL,
+                          max_episode_steps=10, progress=False))
+    with pytest.raises(DatasetError, match="student stand-still"):
+        collect(CollectConfig(tasks=("reach",), out=out, episodes=2, append=True, env_kwargs=SMALL,
+                              max_episode_steps=10, progress=False))
+
+
+def test_a_student_excludes_noise():
+    with pytest.raises(ValueError, match="and a student"):
+        ExpertSettings(dart_noise=0.1, student=STILL)
+
+
+def test_dagger_refuses_what_it_cannot_run():
+    with pytest.raises(ValueError, match="imitation_demos must be at least 1"):
+        DaggerConfig(check=ExpertBenchConfig(imitation_demos=0))
+    with pytest.raises(ValueError, match="would reach the check's layouts"):
+        DaggerConfig(rounds=10)
+
+
+def test_each_round_trains_on_the_last_students_labelled_episodes_and_resumes(tmp_path):
+    check = ExpertBenchConfig(tasks=("reach",), env_kwargs=SMALL, workers=1, imitation_demos=1,
+                              imitation_episodes=1, imitation_steps=2, workdir=str(tmp_path))
+    config = DaggerConfig(check=check, rounds=1, episodes_per_round=1)
+    rounds = run_task(config, "reach")
+    assert [(r.index, r.episodes) for r in rounds] == [(0, 1), (1, 2)]
+    assert rounds[0].collected is None and rounds[1].collected[1] == 1
+    dataset = DemoDataset.open(tmp_path / "data" / "reach_dagger")
+    student = dataset.metadata.collections[1]
+    assert student.seed == DAGGER_SEED and student.student == str((rounds[0].run / "policy.pt").resolve())
+    again = run_task(config, "reach")  # read back: nothing collected or trained again
+    assert [r.score.successes for r in again] == [r.score.successes for r in rounds]
+    assert len(DemoDataset.open(tmp_path / "data" / "reach_dagger").metadata.episodes) == 2
