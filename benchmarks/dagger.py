@@ -21,6 +21,8 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from tqdm import tqdm
+
 from benchmarks.experts import (
     IMITATION_SEED,
     ExpertBenchConfig,
@@ -87,7 +89,8 @@ def run_task(config: DaggerConfig, task: str) -> list[Round]:
     collect_demonstrations(check, task, data)
     runs = Path(check.workdir) / "runs"
     rounds: list[Round] = []
-    for index in range(config.rounds + 1):
+    bar = tqdm(range(config.rounds + 1), desc=f"{task} DAgger rounds", disable=not check.progress)
+    for index in bar:
         run = runs / f"{task}_{check.imitation_algo}_d{check.imitation_demos}{tag}_dagger{index}"
         collected = None
         if index:
@@ -100,6 +103,7 @@ def run_task(config: DaggerConfig, task: str) -> list[Round]:
         episodes = check.imitation_demos + index * config.episodes_per_round
         _check_rounds(data, task, index, episodes)
         rounds.append(Round(index, episodes, run, _score(check, task, data, run, episodes), collected))
+        bar.set_postfix(score=f"{100 * rounds[-1].score.success_rate:.0f} %")
     return rounds
 
 
