@@ -7,8 +7,9 @@ student reaches, appends those episodes (failures included) to the data set, and
 student on everything so far, from scratch. Every student is scored on the same
 ``imitation_episodes`` new layouts. Demonstrations show only the expert's own states; a
 student that drifts off them meets states no label covers, and DAgger labels exactly those.
-An expert whose action is a function of the state closes its imitation gap this way; one
-that acts open loop cannot, since its labels do not depend on where the student is.
+That needs an expert whose action is a function of the state (an open-loop one labels the
+same whatever the student did), and it is no guarantee: on Adroit Door the controller's
+labels made each round's student worse (docs/environments.md).
 
 Everything lives in ``workdir`` and rerunning the command resumes it: collections append,
 training resumes, and each round's score is kept beside its policy.
