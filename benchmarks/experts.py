@@ -132,6 +132,7 @@ def evaluate_imitation(config: ExpertBenchConfig, task: str, run: Path) -> Evalu
 
 
 def imitation_acting(config: ExpertBenchConfig) -> Acting:
+    """How the check's policy acts when scored (and, in ``bench dagger``, when it drives)."""
     return Acting(action_draws=config.imitation_action_draws)
 
 
