@@ -30,10 +30,11 @@ from benchmarks.experts import (
     collect_demonstrations,
     evaluate_imitation,
     imitation_acting,
+    imitation_paths,
     train_imitation,
 )
 from collectors.atomic import atomic_write_text
-from collectors.collect import CollectConfig, collect, demonstrations_tag
+from collectors.collect import CollectConfig, collect
 from collectors.evaluation import EvaluationResult, honest_protocol
 from collectors.experts import expert_name
 from collectors.storage import DemoDataset
@@ -85,14 +86,12 @@ def run_task(config: DaggerConfig, task: str) -> list[Round]:
     """Every round of ``task``; each student trained and scored once, then read back."""
     check = config.check
     kind = check.settings(task).kind
-    tag = demonstrations_tag(check.imitation_dart_noise, kind)
-    data = Path(check.workdir) / "data" / f"{task}{tag}_dagger"
+    data, first_run = imitation_paths(check, task, "_dagger")
     collect_demonstrations(check, task, data)
-    runs = Path(check.workdir) / "runs"
     rounds: list[Round] = []
     bar = tqdm(range(config.rounds + 1), desc=f"{task} DAgger rounds", disable=not check.progress)
     for index in bar:
-        run = runs / f"{task}_{check.imitation_algo}_d{check.imitation_demos}{tag}_dagger{index}"
+        run = first_run.with_name(f"{first_run.name}{index}")
         collected = None
         if index:
             seed = index * DAGGER_SEED
@@ -114,9 +113,10 @@ def _check_rounds(data: Path, task: str, index: int, episodes: int) -> None:
     metadata = DemoDataset.open(data).metadata
     seeds = [c.seed for c in metadata.collections if c.task == task][: index + 1]
     held = sum(c.kept for c in metadata.collections if c.task == task and c.seed in seeds)
-    if seeds != [r * DAGGER_SEED for r in range(index + 1)] or held != episodes:
+    wanted = [r * DAGGER_SEED for r in range(index + 1)]
+    if seeds != wanted or held != episodes:
         raise RuntimeError(f"{data} should begin with {episodes} episodes of {task} from collections of seeds "
-                           f"{[r * DAGGER_SEED for r in range(index + 1)]}, but holds {held} from {seeds}: the "
+                           f"{wanted}, but holds {held} from {seeds}: the "
                            "demonstrations fell short or other settings made it; give the bench another workdir")
 
 

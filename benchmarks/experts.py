@@ -101,12 +101,19 @@ def imitation_success(config: ExpertBenchConfig, task: str) -> EvaluationResult:
     preset, one thread) on ``imitation_demos`` of the expert's demonstrations of ``task``
     (collected with ``imitation_dart_noise``), its final checkpoint on ``imitation_episodes``
     new layouts, acting on the mean of ``imitation_action_draws``."""
-    tag = demonstrations_tag(config.imitation_dart_noise, config.settings(task).kind)
-    data = Path(config.workdir) / "data" / f"{task}{tag}"
+    data, run = imitation_paths(config, task)
     collect_demonstrations(config, task, data)
-    run = Path(config.workdir) / "runs" / f"{task}_{config.imitation_algo}_d{config.imitation_demos}{tag}"
     train_imitation(config, task, data, run, config.imitation_demos)
     return evaluate_imitation(config, task, run)
+
+
+def imitation_paths(config: ExpertBenchConfig, task: str, suffix: str = "") -> tuple[Path, Path]:
+    """The check's data set and policy run for ``task`` in ``workdir``, named by the
+    demonstrations' tag (DART noise, expert kind) and ``suffix``."""
+    tag = demonstrations_tag(config.imitation_dart_noise, config.settings(task).kind) + suffix
+    workdir = Path(config.workdir)
+    return (workdir / "data" / f"{task}{tag}",
+            workdir / "runs" / f"{task}_{config.imitation_algo}_d{config.imitation_demos}{tag}")
 
 
 def collect_demonstrations(config: ExpertBenchConfig, task: str, data: Path) -> None:
