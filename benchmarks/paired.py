@@ -11,12 +11,17 @@ they share their layouts, so it is conservative).
 Example::
 
     d2a bench paired --results docs/table1/points128 --results docs/table4/points128 \\
-        --algo d2a --control d2a-present --plot outputs/paired.png
+        --algo d2a --control d2a-present --reference mp1 --plot outputs/paired.png
+
+With a ``reference`` method (the baseline both should beat, ``mp1`` by default), each pair also
+shows the reference's cell of the same name where there is one, and the pairs that have one are
+summarised against it too: is ``algo`` above both its control and the baseline?
 """
 
 from __future__ import annotations
 
 import math
+import os
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +29,7 @@ from pathlib import Path
 from scipy.stats import t as student_t
 
 from benchmarks.success import Cell, read_cell
+from collectors.atomic import atomic_write_text
 from collectors.evaluation import wilson_interval
 from d2a_agents.success_plot import save_figure
 
@@ -33,7 +39,9 @@ class PairedConfig:
     results: tuple[str, ...]  # directories of cells (or of a grid's report, holding cells/)
     algo: str = "d2a"
     control: str = "d2a-present"
+    reference: str | None = "mp1"  # a third method beside each pair, compared over them (none, or a side: no column)
     plot: str | None = None  # where to draw the per-pair differences (none: no plot)
+    markdown: str | None = None  # where to write the report as well as printing it (none: print only)
     tasks: tuple[str, ...] = ()  # only these tasks' pairs (cell-name spelling, e.g. adroit-door; none: all)
 
     def __post_init__(self) -> None:
@@ -41,15 +49,19 @@ class PairedConfig:
             raise ValueError("give at least one directory of cells")
         if self.algo == self.control:
             raise ValueError(f"--algo and --control are both {self.algo!r}: nothing to compare")
+        if self.reference in (self.algo, self.control):
+            object.__setattr__(self, "reference", None)  # already a side of the pair: no third column
 
 
 @dataclass(frozen=True)
 class Pair:
-    """Two cells of one task, seed and settings, one per method; ``name``: the cell name less the method."""
+    """Two cells of one task, seed and settings, one per method; ``name``: the cell name less the
+    method; ``reference``: a third method's cell of the same name, if asked for and there."""
 
     name: str
     treated: Cell
     control: Cell
+    reference: Cell | None = None
 
     @property
     def difference(self) -> float:
@@ -82,17 +94,24 @@ def cell_files(directory: str | Path) -> list[Path]:
     return sorted(cells.glob("*.json"))
 
 
-def find_pairs(files: list[Path], algo: str, control: str) -> list[Pair]:
+def find_pairs(files: list[Path], algo: str, control: str, reference: str | None = None) -> list[Pair]:
     """Every ``algo`` cell whose ``control`` twin (same name, the other method) is among ``files``
-    (the cells of one directory: names are unique there)."""
+    (the cells of one directory: names are unique there), with its ``reference`` twin if any."""
     by_name = {path.stem: path for path in files}
     pairs = []
     for stem, path in by_name.items():
         task, method, rest = _split(stem)
         twin = by_name.get(f"{task}_{control}_{rest}")
         if method == algo and twin is not None:
-            pairs.append(Pair(f"{task}_{rest}", read_cell(path), read_cell(twin)))
+            third = by_name.get(f"{task}_{reference}_{rest}") if reference else None
+            pairs.append(Pair(f"{task}_{rest}", read_cell(path), read_cell(twin),
+                              read_cell(third) if third is not None else None))
     return pairs
+
+
+def against_reference(pairs: list[Pair]) -> list[Pair]:
+    """The pairs that have a reference cell, re-paired as ``algo`` against the reference."""
+    return [Pair(pair.name, pair.treated, pair.reference) for pair in pairs if pair.reference is not None]
 
 
 def pair_cells(cells: list[Cell], algo: str, control: str) -> list[Pair]:
@@ -150,15 +169,29 @@ def summarize_pairs(pairs: list[Pair]) -> PairedSummary:
 
 
 def report(pairs: list[Pair], config: PairedConfig) -> str:
-    """Markdown: one row per pair, then the summary over them."""
+    """Markdown: one row per pair (with the reference's cell where asked for), then the summary
+    over them, and over those with a reference cell, against it."""
     a, b = f"`{config.algo}`", f"`{config.control}`"
+    referenced = against_reference(pairs)
+    third = [f"`{config.reference}`"] if referenced else []
     lines = [f"{a} against {b} on the cells they share (final checkpoint; same task, demonstrations, "
              "seed, settings and layouts)", "",
-             f"| cell | {a} | {b} | difference (points) |", "| --- | --- | --- | --- |"]
+             "| " + " | ".join(["cell", a, b, "difference (points)", *third]) + " |",
+             "| " + " | ".join(["---"] * (4 + len(third))) + " |"]
     for pair in pairs:
-        lines.append(f"| {pair.name} | {pair.treated.final_wins}/{pair.treated.final_episodes} | "
-                     f"{pair.control.final_wins}/{pair.control.final_episodes} | {100 * pair.difference:+.0f} |")
-    return "\n".join([*lines, "", summary_sentence(pairs, config.algo, config.control)])
+        row = [pair.name, _wins(pair.treated), _wins(pair.control), f"{100 * pair.difference:+.0f}"]
+        if third:
+            row.append(_wins(pair.reference) if pair.reference is not None else "-")
+        lines.append("| " + " | ".join(row) + " |")
+    lines += ["", summary_sentence(pairs, config.algo, config.control)]
+    if referenced:
+        lines += ["", f"Against `{config.reference}` on the pairs with its cell: "
+                      f"{summary_sentence(referenced, config.algo, config.reference)}"]
+    return "\n".join(lines)
+
+
+def _wins(cell: Cell) -> str:
+    return f"{cell.final_wins}/{cell.final_episodes}"
 
 
 def summary_sentence(pairs: list[Pair], algo: str, control: str) -> str:
@@ -207,7 +240,7 @@ def plot(pairs: list[Pair], config: PairedConfig, path: str | Path) -> Path:
 
 def run(config: PairedConfig) -> list[Pair]:
     pairs = [pair for directory in config.results
-             for pair in find_pairs(cell_files(directory), config.algo, config.control)
+             for pair in find_pairs(cell_files(directory), config.algo, config.control, config.reference)
              if not config.tasks or pair.treated.task in config.tasks]
     if not pairs:
         among = f" of {', '.join(config.tasks)}" if config.tasks else ""
@@ -215,4 +248,23 @@ def run(config: PairedConfig) -> list[Pair]:
     print(report(pairs, config))
     if config.plot:
         print(f"plot: {plot(pairs, config, config.plot)}")
+    if config.markdown:
+        atomic_write_text(Path(config.markdown), markdown_page(pairs, config))
+        print(f"report: {config.markdown}")
     return pairs
+
+
+def markdown_page(pairs: list[Pair], config: PairedConfig) -> str:
+    """The report as a page: a title, the command that rewrites it, the plot (when drawn), the report."""
+    options = [*(f"--results {directory}" for directory in config.results), f"--algo {config.algo}",
+               f"--control {config.control}", *(f"--task {task}" for task in config.tasks)]
+    if config.reference:
+        options.append(f"--reference {config.reference}")
+    if config.plot:
+        options.append(f"--plot {config.plot}")
+    lines = [f"# `{config.algo}` against `{config.control}`, cell by cell", "",
+             f"Written by `d2a bench paired {' '.join(options)} --markdown {config.markdown}`.", ""]
+    if config.plot:
+        relative = os.path.relpath(config.plot, Path(config.markdown).parent)
+        lines += [f"![each pair's difference with its interval; the mean over pairs]({relative})", ""]
+    return "\n".join([*lines, report(pairs, config), ""])

@@ -190,7 +190,8 @@ def cmd_bench_paired(args: argparse.Namespace) -> None:
     from benchmarks.paired import PairedConfig, run
 
     run(replace_given(PairedConfig(results=tuple(args.results)), algo=args.algo, control=args.control,
-                       plot=args.plot, tasks=tuple(args.task) if args.task else None))
+                       reference=args.reference, plot=args.plot, markdown=args.markdown,
+                       tasks=tuple(args.task) if args.task else None))
 
 
 def cmd_bench_ray(args: argparse.Namespace) -> None:
@@ -431,7 +432,11 @@ def add_bench_commands(commands: Any) -> None:
                               help="a directory of cells, or a grid's results holding cells/ (repeatable)")
     bench_paired.add_argument("--algo", choices=ALGOS, default=None, help="default: d2a")
     bench_paired.add_argument("--control", choices=ALGOS, default=None, help="default: d2a-present")
+    bench_paired.add_argument("--reference", choices=ALGOS, default=None,
+                              help="a third method shown beside each pair and compared with --algo over the pairs "
+                                   "that have its cell (default: mp1)")
     bench_paired.add_argument("--plot", default=None, help="a PNG of the per-pair differences (default: none)")
+    bench_paired.add_argument("--markdown", default=None, help="also write the report to this file (default: none)")
     bench_paired.add_argument("--task", action="append", default=None,
                               help="only this task's pairs, as cell names spell it (adroit-door); repeatable")
     bench_paired.set_defaults(func=cmd_bench_paired)

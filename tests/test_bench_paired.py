@@ -110,3 +110,30 @@ def test_a_grid_report_closes_with_its_pairs():
                          "difference +10.0 points (one pair: no interval); pooled episodes 70.0 % against 60.0 %, "
                          "difference +10.0 [-3.2, +22.7] (Newcombe).")
     assert grid_note([cell("mp1", 0, 5, 50)]) == []  # no pair, no note
+
+
+def test_the_reference_method_stands_beside_each_pair_and_is_compared_over_those_that_have_it(tmp_path, capsys):
+    for seed, (treated, control, reference) in enumerate([(70, 60, 50), (80, 85, None)]):
+        _write(tmp_path, f"push_d2a_s{seed}_e5", treated)
+        _write(tmp_path, f"push_d2a-present_s{seed}_e5", control)
+        if reference is not None:
+            _write(tmp_path, f"push_mp1_s{seed}_e5", reference)
+    report_file = tmp_path / "report" / "paired.md"
+    report_file.parent.mkdir()
+    main(["bench", "paired", "--results", str(tmp_path), "--markdown", str(report_file)])
+    out = capsys.readouterr().out
+    assert "| cell | `d2a` | `d2a-present` | difference (points) | `mp1` |" in out
+    assert "| push_s0_e5 | 70/100 | 60/100 | +10 | 50/100 |" in out
+    assert "| push_s1_e5 | 80/100 | 85/100 | -5 | - |" in out
+    # Only seed 0 has an mp1 cell: 70/100 against 50/100, +20 points, Newcombe's interval around it.
+    low, high = newcombe_interval(70, 100, 50, 100)
+    assert (f"Against `mp1` on the pairs with its cell: 1 pair of `d2a` and `mp1`: `d2a` ahead in 1, level in 0, "
+            f"behind in 0; mean difference +20.0 points (one pair: no interval); pooled episodes 70.0 % against "
+            f"50.0 %, difference +20.0 [{100 * low:+.1f}, {100 * high:+.1f}] (Newcombe).") in out
+    page = report_file.read_text()
+    assert page.startswith("# `d2a` against `d2a-present`, cell by cell")
+    assert f"Written by `d2a bench paired --results {tmp_path} --algo d2a --control d2a-present --reference mp1 " \
+           f"--markdown {report_file}`." in page and "| push_s0_e5 | 70/100 | 60/100 | +10 | 50/100 |" in page
+    main(["bench", "paired", "--results", str(tmp_path), "--control", "mp1"])  # the reference is a side: no column
+    out = capsys.readouterr().out
+    assert "| push_s0_e5 | 70/100 | 50/100 | +20 |" in out and "Against" not in out
