@@ -145,14 +145,15 @@ def plot(cells: list[Cell], config: Table4Config, path: str | Path) -> Path:
     counts = sorted(config.demos)
     fig, axes = plt.subplots(1, len(config.tasks), figsize=(3.2 * len(config.tasks), 3.2), sharey=True, squeeze=False)
     for ax, task in zip(axes[0], config.tasks, strict=True):
-        for algo in algos:
+        for index, algo in enumerate(algos):
             points = [(demos, rows[demos, task, algo]) for demos in counts if (demos, task, algo) in rows]
             if not points:
                 continue
-            xs = [demos for demos, _ in points]
-            (line,) = ax.plot(xs, [100 * row.honest for _, row in points], "o-", label=algo)
+            dodge = 1.06 ** (index - (len(algos) - 1) / 2)  # side by side at each count (the x axis is log)
+            xs, colour = [demos * dodge for demos, _ in points], f"C{index}"  # one colour per method in every panel
+            ax.plot(xs, [100 * row.honest for _, row in points], "o-", color=colour, label=algo)
             ax.fill_between(xs, [100 * row.low for _, row in points], [100 * row.high for _, row in points],
-                            color=line.get_color(), alpha=0.2)
+                            color=colour, alpha=0.2)
         for index, (name, style) in enumerate((("paper MP1", "k:"), ("paper Ours", "k--"))):
             xs = [demos for demos in counts if task in PAPER_TABLE4.get(demos, {})]
             ax.plot(xs, [PAPER_TABLE4[demos][task][index] for demos in xs], style, linewidth=1, label=name)
@@ -162,7 +163,8 @@ def plot(cells: list[Cell], config: Table4Config, path: str | Path) -> Path:
         ax.set_xlabel("demonstrations")
         ax.set_ylim(0, 102)
     axes[0][0].set_ylabel("success % (honest, 95 % interval)")
-    axes[0][-1].legend(fontsize=7, loc="lower right")
+    legend = {label: handle for ax in axes[0] for handle, label in zip(*ax.get_legend_handles_labels(), strict=True)}
+    axes[0][-1].legend(legend.values(), legend.keys(), fontsize=7, loc="lower right")  # every method, whichever panel
     return save_figure(fig, path)
 
 

@@ -89,3 +89,20 @@ def test_cli_options(monkeypatch):
     assert (config.tasks, config.demos, config.algos, config.seeds) == (("push",), (5, 1), ("d2a-change",), (1,))
     assert config.bench.evaluations == 1 and seen["report"]
     assert (config.cell_config(1).demos, config.cell_config(1).pool) == (1, 20)
+
+
+def test_the_plot_keeps_one_colour_per_method_and_names_every_method(tmp_path, monkeypatch):
+    """A method missing from one panel shifts neither the others' colours nor leaves the legend."""
+    import benchmarks.table4 as table4
+
+    figures = []
+    monkeypatch.setattr(table4, "save_figure", lambda figure, path: figures.append(figure) or path)
+    cells = [_cell("push", "mp1", 0, 5, 30), _cell("push", "d2a", 0, 5, 50), _cell("lever-pull", "d2a", 0, 5, 70)]
+    table4.plot(cells, Table4Config(tasks=("push", "lever-pull"), demos=(5,)), tmp_path / "t4.png")
+    push, lever = figures[0].axes
+    colour = {ax: {line.get_label(): line.get_color() for line in ax.get_lines()} for ax in (push, lever)}
+    assert colour[push]["d2a"] == colour[lever]["d2a"] != colour[push]["mp1"]
+    assert "mp1" not in colour[lever]
+    assert [text.get_text() for text in lever.get_legend().get_texts()] == ["mp1", "d2a", "paper MP1", "paper Ours"]
+    # Methods stand side by side around the count, in their order.
+    assert push.get_lines()[0].get_xdata()[0] < 5 < push.get_lines()[1].get_xdata()[0]
