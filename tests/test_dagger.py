@@ -17,55 +17,57 @@ from collectors.storage import DatasetError, DemoDataset
 SMALL = {"image_size": 32, "num_points": 32}
 
 
-class StandStill(TensorDictModuleBase):
-    """A student that never moves the hand, and checks that the env marks where episodes start."""
+class Drift(TensorDictModuleBase):
+    """A student that moves the hand down and sideways at a constant speed, whatever it sees (so
+    every step reaches a new state), and checks that the env marks where episodes start."""
 
     in_keys = ["is_init"]
     out_keys = ["action"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         assert tensordict.get("is_init").dtype == torch.bool
-        tensordict.set("action", torch.zeros(4))
+        tensordict.set("action", torch.tensor([0.3, 0.0, -0.3, 0.0]))
         return tensordict
 
 
-STILL = Student("stand-still", StandStill)
+DRIFT = Student("drift", Drift)
 
 
 def test_the_student_acts_and_the_expert_labels_each_state_it_reaches(tmp_path):
     """The stored actions are the scripted expert's own in the stored states (recomputed here),
-    while the hand, driven by the student's zero actions, stays where it started."""
+    step for step, while the hand goes where the student's constant action drives it."""
     from metaworld.policies import ENV_POLICY_MAP
 
     out = tmp_path / "dagger"
-    collect(CollectConfig(tasks=("reach",), out=str(out), episodes=2, env_kwargs=SMALL, student=STILL,
+    collect(CollectConfig(tasks=("reach",), out=str(out), episodes=2, env_kwargs=SMALL, student=DRIFT,
                           max_episode_steps=30, progress=False))
     dataset = DemoDataset.open(out)
     record = dataset.metadata.collections[0]
-    assert record.student == "stand-still" and record.attempts == 2 and record.kept == 2  # failures kept
+    assert record.student == "drift" and record.attempts == 2 and record.kept == 2  # failures kept
     assert not any(e.success for e in dataset.metadata.episodes)
     assert dataset.rollout_episodes() == [] and dataset.demonstrations() is dataset  # labelled: training data
     episode = dataset.episode(0)
     expert = ENV_POLICY_MAP["reach-v3"]()
     labels = np.stack([np.clip(expert.get_action(state), -1, 1) for state in episode["state"].double().numpy()])
     np.testing.assert_allclose(episode["action"].numpy(), labels, atol=1e-5)
-    assert np.abs(labels).max() > 0.1  # the expert would have moved
-    hand = episode["state"][:, :3]
-    assert float((hand - hand[0]).norm(dim=-1).max()) < 0.01  # the student did not
+    assert np.abs(episode["action"][1:].numpy() - labels[:-1]).max() > 1e-3  # so a label one step off would show
+    hand = episode["state"][:, :3].numpy()
+    steps = np.diff(hand, axis=0)
+    assert (steps[5:, 0] > 0).all() and (steps[5:, 2] < 0).all()  # the student drove: +x and -z every step
 
 
 def test_a_student_collection_resumes_only_with_the_same_student(tmp_path):
     out = str(tmp_path / "dagger")
-    collect(CollectConfig(tasks=("reach",), out=out, episodes=1, env_kwargs=SMALL, student=STILL,
+    collect(CollectConfig(tasks=("reach",), out=out, episodes=1, env_kwargs=SMALL, student=DRIFT,
                           max_episode_steps=10, progress=False))
-    with pytest.raises(DatasetError, match="student stand-still"):
+    with pytest.raises(DatasetError, match="student drift"):
         collect(CollectConfig(tasks=("reach",), out=out, episodes=2, append=True, env_kwargs=SMALL,
                               max_episode_steps=10, progress=False))
 
 
 def test_a_student_excludes_noise():
     with pytest.raises(ValueError, match="and a student"):
-        ExpertSettings(dart_noise=0.1, student=STILL)
+        ExpertSettings(dart_noise=0.1, student=DRIFT)
 
 
 def test_dagger_refuses_what_it_cannot_run():
