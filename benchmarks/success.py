@@ -122,6 +122,12 @@ class SuccessBenchConfig:
     # gym.make options of the demonstrations (and so of every evaluation), e.g. the dense clouds
     # {"image_size": 256, "num_points": 4096, "backend": "render"} that the 128x128x32 world model reads.
     env_kwargs: dict[str, object] = field(default_factory=dict)
+    # Directories of another grid's cells made from the same collections (the same tasks, seeds and
+    # env settings: Table I's 10 demonstrations per task are the first 10 of Table IV's 20): a cell of
+    # a method that reads no world model, found there under this grid's name, is copied rather than
+    # rerun. Imagining cells are never copied: a world model's training split depends on how many
+    # demonstrations its collection holds (d2a train-wm holds some out when there are no more).
+    shared_cells: tuple[str, ...] = ()
     # Side in pixels of the camera images stored with the demonstrations when an algo reads them
     # (dp; DP3's Meta-World images are 84 pixels): their own data set (``_rgb<side>``), which
     # every algo of such a bench then trains on (the same demonstrations, images added).
@@ -382,6 +388,21 @@ def _store(config: SuccessBenchConfig, cell: Cell) -> None:
     atomic_write_text(path, json.dumps(dataclasses.asdict(cell), indent=1))
 
 
+def _take_shared(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> Cell | None:
+    """The cell from ``config.shared_cells`` (the first directory holding it), stored as this
+    grid's own; None for a method that reads a world model, or where none holds it."""
+    if uses_imagination(algo):
+        return None
+    name = cell_path(config, task, algo, seed).name
+    source = next((path for directory in config.shared_cells if (path := Path(directory) / name).exists()), None)
+    if source is None:
+        return None
+    cell = read_cell(source)
+    _store(config, cell)
+    print(f"{name}: taken from {source.parent} (the same demonstrations and settings)", flush=True)
+    return cell
+
+
 def _run_locally(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -> dict[tuple[str, str, int], Cell]:
     """The unfinished cells one after the other in this process, each claimed first (cells
     another process holds are skipped, those it finished meanwhile read back) and stored as
@@ -396,6 +417,9 @@ def _run_locally(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -
             with exclusive_writer(runs, lock_name=f".{name}.lock"):
                 if (path := cell_path(config, task, algo, seed)).exists():
                     done[task, algo, seed] = read_cell(path)
+                    continue
+                if (shared := _take_shared(config, task, algo, seed)) is not None:  # finished there meanwhile
+                    done[task, algo, seed] = shared
                     continue
                 if task not in datasets:  # once per task: the collection check opens the data set and an env
                     datasets[task] = _dataset(config, task)
@@ -448,6 +472,7 @@ def run_grid(config: SuccessBenchConfig, grid: list[tuple[str, str, int]]) -> li
     the others run (locally or on Ray); returns the finished cells in the grid's order."""
     evaluation_interval(config.policy.steps, config.evaluations)  # a count it cannot give fails before any work
     finished = {key: read_cell(path) for key in grid if (path := cell_path(config, *key)).exists()}
+    finished |= {key: cell for key in grid if key not in finished and (cell := _take_shared(config, *key)) is not None}
     for cell in finished.values():
         print(_describe(cell), flush=True)
     todo = [key for key in grid if key not in finished]

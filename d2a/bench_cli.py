@@ -32,6 +32,10 @@ def add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: str
     parser.add_argument("--workdir", default=None, help=f"data, world models, checkpoints (default {workdir})")
     parser.add_argument("--results", default=None,
                         help=f"finished cells and the report (default {results}); a rerun skips its cells")
+    parser.add_argument("--shared-cells", action="append", default=None, metavar="DIR",
+                        help="another grid's cells made from the same demonstrations and settings (Table I's are "
+                             "the first 10 of Table IV's): its cells of methods without a world model are copied, "
+                             "not rerun (repeatable)")
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch threads per cell (default 1)")
     parser.add_argument("--report", action="store_true", help="only write the report of the finished cells")
     add_ray_option(parser)
@@ -164,7 +168,7 @@ def grid_cells(base: Any, args: argparse.Namespace) -> Any:
     """A grid bench's per-cell settings (``SuccessBenchConfig``) with the options given."""
     return replace_given(with_policy_options(base, args), workdir=args.workdir, threads=args.threads,
                           ray_address=args.ray, evaluations=args.evaluations, eval_layouts=args.eval_layouts,
-                          workers=args.workers)
+                          workers=args.workers, shared_cells=tuple(args.shared_cells) if args.shared_cells else None)
 
 
 def cmd_bench_table1(args: argparse.Namespace) -> None:

@@ -106,3 +106,27 @@ def test_the_plot_keeps_one_colour_per_method_and_names_every_method(tmp_path, m
     assert [text.get_text() for text in lever.get_legend().get_texts()] == ["mp1", "d2a", "paper MP1", "paper Ours"]
     # Methods stand side by side around the count, in their order.
     assert push.get_lines()[0].get_xdata()[0] < 5 < push.get_lines()[1].get_xdata()[0]
+
+
+def test_another_grids_cells_on_the_same_demonstrations_are_copied_not_rerun(tmp_path, capsys):
+    """Table I's 10 demonstrations are the first 10 of Table IV's 20: `--shared-cells` takes its
+    cells of methods without a world model (nothing is collected or trained here), never an
+    imagining one, whose world model's training split depends on the collection's size."""
+    import dataclasses
+    import json
+
+    config = Table4Config(tasks=("push",), demos=(10,), algos=("mp1", "d2a-present"), seeds=(0,),
+                          results=str(tmp_path / "t4"))
+    bench = dataclasses.replace(config.cell_config(10), shared_cells=(str(tmp_path / "t1"),))
+    (tmp_path / "t1").mkdir()
+    for algo, wins in (("mp1", 77), ("d2a-present", 71), ("d2a", 80)):
+        (tmp_path / "t1" / success.cell_path(bench, "push", algo, 0).name).write_text(
+            json.dumps(dataclasses.asdict(_cell("push", algo, 0, 10, wins))))
+    main(["bench", "table4", "--demos", "10", "--task", "push", "--algo", "mp1", "--algo", "d2a-present",
+          "--seed", "0", "--results", str(tmp_path / "t4"), "--workdir", str(tmp_path / "work"),
+          "--shared-cells", str(tmp_path / "t1")])
+    assert capsys.readouterr().out.count("taken from") == 2
+    assert success.read_cell(success.cell_path(bench, "push", "d2a-present", 0)).final_wins == 71  # now its own
+    assert not (tmp_path / "work" / "data").exists()
+    assert success._take_shared(bench, "push", "d2a", 0) is None
+    assert not success.cell_path(bench, "push", "d2a", 0).exists()
