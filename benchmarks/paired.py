@@ -245,17 +245,18 @@ def run(config: PairedConfig) -> list[Pair]:
     if not pairs:
         among = f" of {', '.join(config.tasks)}" if config.tasks else ""
         raise ValueError(f"no {config.algo} cell{among} in {', '.join(config.results)} has a {config.control} twin")
-    print(report(pairs, config))
+    text = report(pairs, config)
+    print(text)
     if config.plot:
         print(f"plot: {plot(pairs, config, config.plot)}")
     if config.markdown:
-        atomic_write_text(Path(config.markdown), markdown_page(pairs, config))
+        atomic_write_text(Path(config.markdown), markdown_page(text, config))
         print(f"report: {config.markdown}")
     return pairs
 
 
-def markdown_page(pairs: list[Pair], config: PairedConfig) -> str:
-    """The report as a page: a title, the command that rewrites it, the plot (when drawn), the report."""
+def markdown_page(text: str, config: PairedConfig) -> str:
+    """``report``'s text as a page: a title, the command that rewrites it, the plot (when drawn)."""
     options = [*(f"--results {directory}" for directory in config.results), f"--algo {config.algo}",
                f"--control {config.control}", *(f"--task {task}" for task in config.tasks)]
     if config.reference:
@@ -267,4 +268,4 @@ def markdown_page(pairs: list[Pair], config: PairedConfig) -> str:
     if config.plot:
         relative = os.path.relpath(config.plot, Path(config.markdown).parent)
         lines += [f"![each pair's difference with its interval; the mean over pairs]({relative})", ""]
-    return "\n".join([*lines, report(pairs, config), ""])
+    return "\n".join([*lines, text, ""])

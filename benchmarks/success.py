@@ -399,7 +399,7 @@ def _take_shared(config: SuccessBenchConfig, task: str, algo: str, seed: int) ->
         return None
     cell = read_cell(source)
     _store(config, cell)
-    print(f"{name}: taken from {source.parent} (the same demonstrations and settings)", flush=True)
+    print(f"{name}: taken from {source.parent} (--shared-cells)", flush=True)
     return cell
 
 

@@ -154,9 +154,9 @@ def plot(cells: list[Cell], config: Table4Config, path: str | Path) -> Path:
             ax.plot(xs, [100 * row.honest for _, row in points], "o-", color=colour, label=algo)
             ax.fill_between(xs, [100 * row.low for _, row in points], [100 * row.high for _, row in points],
                             color=colour, alpha=0.2)
-        for index, (name, style) in enumerate((("paper MP1", "k:"), ("paper Ours", "k--"))):
+        for column, (name, style) in enumerate((("paper MP1", "k:"), ("paper Ours", "k--"))):
             xs = [demos for demos in counts if task in PAPER_TABLE4.get(demos, {})]
-            ax.plot(xs, [PAPER_TABLE4[demos][task][index] for demos in xs], style, linewidth=1, label=name)
+            ax.plot(xs, [PAPER_TABLE4[demos][task][column] for demos in xs], style, linewidth=1, label=name)
         ax.set_xscale("log")
         ax.set_xticks(counts, [str(demos) for demos in counts])
         ax.set_title(task, fontsize=9)
