@@ -198,6 +198,13 @@ def cmd_bench_paired(args: argparse.Namespace) -> None:
                        tasks=tuple(args.task) if args.task else None))
 
 
+def cmd_bench_order(args: argparse.Namespace) -> None:
+    from benchmarks.ordering import OrderingConfig, run
+
+    run(OrderingConfig(results=tuple(args.results), order=tuple(args.order),
+                       tasks=tuple(args.task) if args.task else (), markdown=args.markdown))
+
+
 def cmd_bench_ray(args: argparse.Namespace) -> None:
     from benchmarks.ray_scaling import RayScalingConfig, run
 
@@ -444,6 +451,17 @@ def add_bench_commands(commands: Any) -> None:
     bench_paired.add_argument("--task", action="append", default=None,
                               help="only this task's pairs, as cell names spell it (adroit-door); repeatable")
     bench_paired.set_defaults(func=cmd_bench_paired)
+
+    bench_order = bench.add_parser("order", help="does a claimed ranking of methods hold? each adjacent step "
+                                                 "compared cell by cell, with intervals and a verdict")
+    bench_order.add_argument("--results", action="append", required=True,
+                             help="a directory of cells, or a grid's results holding cells/ (repeatable)")
+    bench_order.add_argument("--order", nargs="+", choices=ALGOS, required=True,
+                             help="the claimed ranking, lowest first (e.g. dp cp dp3 flowpolicy mp1)")
+    bench_order.add_argument("--task", action="append", default=None,
+                             help="only this task's cells, as cell names spell it (adroit-door); repeatable")
+    bench_order.add_argument("--markdown", default=None, help="also write the report to this file (default: none)")
+    bench_order.set_defaults(func=cmd_bench_order)
 
     bench_ray = bench.add_parser("ray", help="the same small bench success grid on 1 and 2 Ray CPUs: wall time")
     bench_ray.add_argument("--task", default=None, help="default: reach")

@@ -9,6 +9,7 @@ import math
 import pytest
 
 from benchmarks import table4
+from benchmarks.ordering import OrderingConfig, common_cells, steps
 from benchmarks.paired import (
     PairedConfig,
     cell_files,
@@ -137,3 +138,34 @@ def test_the_reference_method_stands_beside_each_pair_and_is_compared_over_those
     main(["bench", "paired", "--results", str(tmp_path), "--control", "mp1"])  # the reference is a side: no column
     out = capsys.readouterr().out
     assert "| push_s0_e5 | 70/100 | 50/100 | +20 |" in out and "Against" not in out
+
+
+def test_each_step_of_a_ranking_gets_its_verdict_from_a_hand_computed_interval(tmp_path, capsys):
+    wins = {"dp": [10, 20, 30], "cp": [50, 60, 70], "mp1": [40, 70, 60], "dp3": [20, 45, 30]}
+    for method, per_seed in wins.items():
+        for seed, won in enumerate(per_seed):
+            _write(tmp_path, f"push_{method}_s{seed}_e5", won)
+    _write(tmp_path, "stick-pull_dp_s0_e5", 10)  # only dp and cp have Stick-Pull
+    _write(tmp_path, "stick-pull_cp_s0_e5", 60)
+    config = OrderingConfig(results=(str(tmp_path),), order=("dp", "cp", "mp1", "dp3"))
+    found = {(step.lower, step.higher): step for step in steps(config)}
+    # dp < cp: +40, +40, +40, +50 -> mean 42.5, sd 5, t(0.975, 3) = 3.1824 -> [34.5, 50.5]: holds.
+    rising = found["dp", "cp"].summary
+    assert rising.pairs == 4 and rising.mean == pytest.approx(0.425)
+    assert (rising.low, rising.high) == pytest.approx((0.425 - 3.182446305284263 * 0.05 / 2,
+                                                       0.425 + 3.182446305284263 * 0.05 / 2))
+    assert found["dp", "cp"].verdict == "holds"
+    # cp < mp1: -10, +10, -10 -> the interval spans zero.
+    assert found["cp", "mp1"].verdict == "not separated"
+    # mp1 < dp3: -20, -25, -30 -> mean -25, sd 5, t(0.975, 2) = 4.3027 -> [-37.4, -12.6]: reversed.
+    falling = found["mp1", "dp3"].summary
+    assert falling.high == pytest.approx(-0.25 + 4.302652729911275 * 0.05 / math.sqrt(3))
+    assert found["mp1", "dp3"].verdict == "reversed"
+    common = common_cells(config)
+    assert [len(cells) for cells in common.values()] == [3, 3, 3, 3]  # Stick-Pull is not common to all
+    assert sum(cell.final_wins for cell in common["dp"]) == 60
+
+    main(["bench", "order", "--results", str(tmp_path), "--order", "dp", "flowpolicy"])
+    out = capsys.readouterr().out
+    assert "No cell is shared by every method" in out and "| `dp` < `flowpolicy` | 0 |" in out
+    assert out.rstrip().endswith("no shared cell |")

@@ -1,0 +1,138 @@
+"""Does a claimed ranking of methods hold on the cells they share?
+
+A paper's table ranks its methods (Table I: DP < CP < DP3 < FlowPolicy < MP1 on average). This
+report checks each step of such a ranking on a grid's cells: each adjacent pair of methods is
+compared cell by cell as :mod:`benchmarks.paired` does (same task, demonstrations, seed, settings
+and layouts), and the step is called *holds* when the higher method's mean difference over the
+pairs has its whole 95 % Student-t interval above zero, *reversed* when it lies below zero, and
+*not separated* otherwise. Beside it, each method's pooled success over the cells that every
+method of the ranking has, so the methods are read on the same tasks and seeds.
+
+Example::
+
+    d2a bench order --results docs/other_methods --order dp cp dp3 flowpolicy mp1
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from benchmarks.paired import Pair, PairedSummary, cell_files, find_pairs, summarize_pairs
+from benchmarks.success import Cell, read_cell
+from collectors.atomic import atomic_write_text
+from collectors.evaluation import wilson_interval
+
+
+@dataclass(frozen=True)
+class OrderingConfig:
+    results: tuple[str, ...]  # directories of cells (or of a grid's report, holding cells/)
+    order: tuple[str, ...]  # the claimed ranking, lowest first
+    tasks: tuple[str, ...] = ()  # only these tasks' cells (cell-name spelling; none: all)
+    markdown: str | None = None  # where to write the report as well as printing it (none: print only)
+
+    def __post_init__(self) -> None:
+        if not self.results:
+            raise ValueError("give at least one directory of cells")
+        if len(self.order) < 2:
+            raise ValueError(f"a ranking needs at least two methods, got {list(self.order)}")
+        if len(set(self.order)) != len(self.order):
+            raise ValueError(f"a method appears twice in the ranking {list(self.order)}")
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of the ranking: ``higher`` (the pairs' treated side) claimed above ``lower``."""
+
+    lower: str
+    higher: str
+    pairs: list[Pair]
+
+    @property
+    def summary(self) -> PairedSummary | None:
+        return summarize_pairs(self.pairs) if self.pairs else None
+
+    @property
+    def verdict(self) -> str:
+        summary = self.summary
+        if summary is None:
+            return "no shared cell"
+        if summary.pairs < 2:
+            return "one pair: no interval"
+        if summary.low > 0:
+            return "holds"
+        if summary.high < 0:
+            return "reversed"
+        return "not separated"
+
+
+def steps(config: OrderingConfig) -> list[Step]:
+    """The adjacent steps of the ranking, each with its pairs over every results directory."""
+    found = []
+    for lower, higher in zip(config.order, config.order[1:], strict=False):
+        pairs = [pair for directory in config.results for pair in find_pairs(cell_files(directory), higher, lower)
+                 if not config.tasks or pair.treated.task in config.tasks]
+        found.append(Step(lower, higher, pairs))
+    return found
+
+
+def common_cells(config: OrderingConfig) -> dict[str, list[Cell]]:
+    """Each method's cells on the names (task, seed, settings) that every method of the ranking has."""
+    by_method: dict[str, dict[str, Path]] = {method: {} for method in config.order}
+    for directory in config.results:
+        for path in cell_files(directory):
+            parts = path.stem.split("_", 2)
+            if len(parts) == 3 and parts[1] in by_method and (not config.tasks or parts[0] in config.tasks):
+                by_method[parts[1]].setdefault(f"{parts[0]}_{parts[2]}", path)
+    shared = set.intersection(*(set(names) for names in by_method.values()))
+    return {method: [read_cell(by_method[method][name]) for name in sorted(shared)] for method in config.order}
+
+
+def report(config: OrderingConfig) -> str:
+    """Markdown: the methods on their common cells, then each step of the ranking and its verdict."""
+    claimed = " < ".join(f"`{method}`" for method in config.order)
+    lines = [f"The ranking {claimed}, step by step on the cells each two methods share (final checkpoint; "
+             "same task, demonstrations, seed, settings and layouts)", ""]
+    common = common_cells(config)
+    count = len(next(iter(common.values())))
+    if count:
+        tasks = sorted({cell.task for cell in next(iter(common.values()))})
+        lines += [f"On the {count} cells every method has ({', '.join(tasks)}):", "",
+                  "| method | final wins | pooled success [95 %] | paper protocol, mean over cells |",
+                  "| --- | --- | --- | --- |"]
+        for method, cells in common.items():
+            wins, episodes = sum(c.final_wins for c in cells), sum(c.final_episodes for c in cells)
+            low, high = wilson_interval(wins, episodes)
+            paper = 100 * sum(c.paper for c in cells) / len(cells)
+            lines.append(f"| `{method}` | {wins}/{episodes} | {100 * wins / episodes:.1f} "
+                         f"[{100 * low:.1f}-{100 * high:.1f}] | {paper:.1f} |")
+    else:
+        lines.append("No cell is shared by every method of the ranking.")
+    lines += ["", "| claimed | pairs | higher ahead / level / behind | mean difference (points) [95 %, t] | "
+                  "pooled difference [95 %, Newcombe] | verdict |",
+              "| --- | --- | --- | --- | --- | --- |"]
+    for step in steps(config):
+        summary = step.summary
+        if summary is None:
+            cells = ["0", "-", "-", "-"]
+        else:
+            interval = (f" [{100 * summary.low:+.1f}, {100 * summary.high:+.1f}]" if summary.pairs > 1 else "")
+            pooled = 100 * (summary.pooled_treated - summary.pooled_control)
+            cells = [str(summary.pairs), f"{summary.wins} / {summary.ties} / {summary.losses}",
+                     f"{100 * summary.mean:+.1f}{interval}",
+                     f"{pooled:+.1f} [{100 * summary.pooled_low:+.1f}, {100 * summary.pooled_high:+.1f}]"]
+        lines.append(f"| `{step.lower}` < `{step.higher}` | " + " | ".join([*cells, step.verdict]) + " |")
+    return "\n".join(lines)
+
+
+def run(config: OrderingConfig) -> str:
+    text = report(config)
+    print(text)
+    if config.markdown:
+        options = [*(f"--results {directory}" for directory in config.results),
+                   f"--order {' '.join(config.order)}", *(f"--task {task}" for task in config.tasks)]
+        page = [f"# The ranking {' < '.join(config.order)}", "",
+                f"Written by `d2a bench order {' '.join(options)} --markdown {config.markdown}`.", "", text, ""]
+        atomic_write_text(Path(config.markdown), "\n".join(page))
+        print(f"report: {config.markdown}")
+    return text
