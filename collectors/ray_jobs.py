@@ -28,6 +28,11 @@ from typing import Any
 
 # ``--ray`` without an address: start a Ray instance on this machine for the duration of the command.
 LOCAL = "local"
+# Ray runs its workers at niceness 15, below every other process: on a machine with other work a
+# local instance's jobs then hardly get a core (a two-cell bench took minutes to import torch
+# beside five busy processes). The jobs are the command's work, so a local instance runs them at
+# the command's own priority, as a run without Ray would.
+LOCAL_SYSTEM_CONFIG = {"worker_niceness": 0}
 INSTALL_HINT = 'Ray is not installed: pip install -e ".[ray]" (or pip install "ray>=2.40")'
 
 
@@ -45,8 +50,9 @@ def ray_cluster(address: str = LOCAL, num_cpus: int | None = None) -> Iterator[M
     """Be connected to Ray for the duration of the block.
 
     ``address``: ``"local"`` starts a Ray instance on this machine (``num_cpus`` of its cores,
-    default all), ``"auto"`` joins the cluster this machine belongs to, anything else is passed
-    to ``ray.init`` (e.g. ``ray://head:10001``). If the caller is already connected (``ray.init``
+    default all; its workers at the caller's priority, :data:`LOCAL_SYSTEM_CONFIG`), ``"auto"``
+    joins the cluster this machine belongs to, anything else is passed to ``ray.init`` (e.g.
+    ``ray://head:10001``). If the caller is already connected (``ray.init``
     was called, e.g. with ``num_cpus=2``), that connection is used as it is and left open.
     """
     if not address:
@@ -57,8 +63,10 @@ def ray_cluster(address: str = LOCAL, num_cpus: int | None = None) -> Iterator[M
     if ray.is_initialized():
         yield ray
         return
-    ray.init(address=None if address == LOCAL else address, num_cpus=num_cpus, include_dashboard=False,
-             log_to_driver=False, logging_level=logging.WARNING)  # the command's own lines, not Ray's chatter
+    local = address == LOCAL
+    ray.init(address=None if local else address, num_cpus=num_cpus, include_dashboard=False,
+             log_to_driver=False, logging_level=logging.WARNING,  # the command's own lines, not Ray's chatter
+             _system_config=LOCAL_SYSTEM_CONFIG if local else None)  # a cluster keeps its own settings
     try:
         yield ray
     finally:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
+import subprocess
 import sys
 
 import pytest
@@ -15,7 +16,7 @@ import benchmarks.success as bench
 from collectors.collect import CollectConfig, collect
 from collectors.evaluation import evaluate
 from collectors.experts import make_expert
-from collectors.ray_jobs import INSTALL_HINT, JobsLost, Lost, as_completed, import_ray
+from collectors.ray_jobs import INSTALL_HINT, LOCAL_SYSTEM_CONFIG, JobsLost, Lost, as_completed, import_ray
 from collectors.storage import DemoDataset
 from d2a.cli import main
 from d2a_agents.policy.agent import PolicyConfig
@@ -30,9 +31,21 @@ ENV_KWARGS = {"image_size": 48, "num_points": 128}
 def ray_instance():
     ray = pytest.importorskip("ray")
     # a small object store: the jobs pass tensordicts of a few MB, and CI's /dev/shm may be small
-    ray.init(num_cpus=2, object_store_memory=200 * 1024**2, include_dashboard=False, log_to_driver=False)
+    ray.init(num_cpus=2, object_store_memory=200 * 1024**2, include_dashboard=False, log_to_driver=False,
+             _system_config=LOCAL_SYSTEM_CONFIG)
     yield ray
     ray.shutdown()
+
+
+def test_a_local_instance_runs_its_jobs_at_the_callers_priority():
+    pytest.importorskip("ray")
+    # A fresh interpreter, so that the command's own local instance starts (not the fixture's);
+    # Ray's default would run the job at niceness 15, behind every other process on the machine.
+    code = ("import os\nfrom collectors.ray_jobs import as_completed\n"
+            "print([outcome for _, outcome in as_completed(lambda: os.nice(0), [()])][0], os.nice(0))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, check=True)
+    job, caller = map(int, result.stdout.split()[-2:])
+    assert job == caller
 
 
 def test_an_evaluation_on_ray_gives_the_local_episodes(ray_instance):
