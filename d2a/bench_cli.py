@@ -41,6 +41,15 @@ def add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: str
     add_ray_option(parser)
 
 
+def add_cell_reading_options(parser: argparse.ArgumentParser) -> None:
+    """The options of the reports that read finished cells: where they are, which tasks, a page to write."""
+    parser.add_argument("--results", action="append", required=True,
+                        help="a directory of cells, or a grid's results holding cells/ (repeatable)")
+    parser.add_argument("--task", action="append", default=None,
+                        help="only this task's cells, as cell names spell it (adroit-door); repeatable")
+    parser.add_argument("--markdown", default=None, help="also write the report to this file (default: none)")
+
+
 def cmd_bench_envs(args: argparse.Namespace) -> None:
     from benchmarks.envs import EnvBenchConfig, run
 
@@ -439,28 +448,20 @@ def add_bench_commands(commands: Any) -> None:
 
     bench_paired = bench.add_parser("paired", help="one method against another on the cells they share (same task, "
                                                    "seed, settings, layouts): per pair and over pairs, intervals")
-    bench_paired.add_argument("--results", action="append", required=True,
-                              help="a directory of cells, or a grid's results holding cells/ (repeatable)")
+    add_cell_reading_options(bench_paired)
     bench_paired.add_argument("--algo", choices=ALGOS, default=None, help="default: d2a")
     bench_paired.add_argument("--control", choices=ALGOS, default=None, help="default: d2a-present")
     bench_paired.add_argument("--reference", choices=ALGOS, default=None,
                               help="a third method shown beside each pair and compared with --algo over the pairs "
                                    "that have its cell (default: mp1)")
     bench_paired.add_argument("--plot", default=None, help="a PNG of the per-pair differences (default: none)")
-    bench_paired.add_argument("--markdown", default=None, help="also write the report to this file (default: none)")
-    bench_paired.add_argument("--task", action="append", default=None,
-                              help="only this task's pairs, as cell names spell it (adroit-door); repeatable")
     bench_paired.set_defaults(func=cmd_bench_paired)
 
     bench_order = bench.add_parser("order", help="does a claimed ranking of methods hold? each adjacent step "
                                                  "compared cell by cell, with intervals and a verdict")
-    bench_order.add_argument("--results", action="append", required=True,
-                             help="a directory of cells, or a grid's results holding cells/ (repeatable)")
+    add_cell_reading_options(bench_order)
     bench_order.add_argument("--order", nargs="+", choices=ALGOS, required=True,
                              help="the claimed ranking, lowest first (e.g. dp cp dp3 flowpolicy mp1)")
-    bench_order.add_argument("--task", action="append", default=None,
-                             help="only this task's cells, as cell names spell it (adroit-door); repeatable")
-    bench_order.add_argument("--markdown", default=None, help="also write the report to this file (default: none)")
     bench_order.set_defaults(func=cmd_bench_order)
 
     bench_ray = bench.add_parser("ray", help="the same small bench success grid on 1 and 2 Ray CPUs: wall time")
