@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.paired import Pair, PairedSummary, cell_files, find_pairs, summarize_pairs
+from benchmarks.paired import Pair, PairedSummary, cell_files, pairs_in, summarize_pairs
 from benchmarks.success import Cell, read_cell
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import wilson_interval
@@ -70,14 +70,13 @@ def steps(config: OrderingConfig) -> list[Step]:
     """The adjacent steps of the ranking, each with its pairs over every results directory."""
     found = []
     for lower, higher in zip(config.order, config.order[1:], strict=False):
-        pairs = [pair for directory in config.results for pair in find_pairs(cell_files(directory), higher, lower)
-                 if not config.tasks or pair.treated.task in config.tasks]
-        found.append(Step(lower, higher, pairs))
+        found.append(Step(lower, higher, pairs_in(config.results, higher, lower, tasks=config.tasks)))
     return found
 
 
 def common_cells(config: OrderingConfig) -> dict[str, list[Cell]]:
-    """Each method's cells on the names (task, seed, settings) that every method of the ranking has."""
+    """Each method's cells on the names (task, seed, settings) that every method of the ranking has
+    (a name in several directories: the first directory's cell)."""
     by_method: dict[str, dict[str, Path]] = {method: {} for method in config.order}
     for directory in config.results:
         for path in cell_files(directory):

@@ -109,6 +109,21 @@ def find_pairs(files: list[Path], algo: str, control: str, reference: str | None
     return pairs
 
 
+def pairs_in(directories: tuple[str, ...], algo: str, control: str, reference: str | None = None,
+             tasks: tuple[str, ...] = ()) -> list[Pair]:
+    """The pairs of every directory (of ``tasks`` only, when given), in order; a pair found again in
+    a later directory with the same two cells (cells one grid copied from another, ``--shared-cells``)
+    counts once, while a pair of the same name with another cell on either side is a pair of its own."""
+    seen, pairs = set(), []
+    for directory in directories:
+        for pair in find_pairs(cell_files(directory), algo, control, reference):
+            key = (pair.name, repr(pair.treated), repr(pair.control))
+            if (not tasks or pair.treated.task in tasks) and key not in seen:
+                seen.add(key)
+                pairs.append(pair)
+    return pairs
+
+
 def against_reference(pairs: list[Pair]) -> list[Pair]:
     """The pairs that have a reference cell, re-paired as ``algo`` against the reference."""
     return [Pair(pair.name, pair.treated, pair.reference) for pair in pairs if pair.reference is not None]
@@ -239,9 +254,7 @@ def plot(pairs: list[Pair], config: PairedConfig, path: str | Path) -> Path:
 
 
 def run(config: PairedConfig) -> list[Pair]:
-    pairs = [pair for directory in config.results
-             for pair in find_pairs(cell_files(directory), config.algo, config.control, config.reference)
-             if not config.tasks or pair.treated.task in config.tasks]
+    pairs = pairs_in(config.results, config.algo, config.control, config.reference, config.tasks)
     if not pairs:
         among = f" of {', '.join(config.tasks)}" if config.tasks else ""
         raise ValueError(f"no {config.algo} cell{among} in {', '.join(config.results)} has a {config.control} twin")

@@ -17,6 +17,7 @@ from benchmarks.paired import (
     grid_note,
     newcombe_interval,
     pair_cells,
+    pairs_in,
     summarize_pairs,
 )
 from benchmarks.success import Cell
@@ -53,6 +54,18 @@ def test_only_cells_of_the_same_task_seed_and_settings_pair(tmp_path):
     assert [(pair.name, pair.treated.final_wins, pair.control.final_wins) for pair in pairs] == \
         [("push_s0_e5_fresh_d5", 70, 60)]
     assert cell_files(cells) == cell_files(tmp_path / "grid")  # the report's directory or its cells/
+
+
+def test_a_pair_copied_into_another_grid_counts_once(tmp_path):
+    for grid in ("table1", "table4"):  # the control copied between the grids (--shared-cells)
+        _write(tmp_path / grid, "push_d2a-present_s0_e5", 60)
+        _write(tmp_path / grid, "push_mp1_s0_e5", 55)
+    _write(tmp_path / "table1", "push_d2a_s0_e5", 70)  # each grid's own world model: two treated cells
+    _write(tmp_path / "table4", "push_d2a_s0_e5", 64)
+    grids = (str(tmp_path / "table1"), str(tmp_path / "table4"))
+    assert [pair.treated.final_wins for pair in pairs_in(grids, "d2a", "d2a-present")] == [70, 64]
+    assert len(pairs_in(grids, "d2a-present", "mp1")) == 1
+    assert pairs_in(grids, "d2a-present", "mp1", tasks=("stick-pull",)) == []
 
 
 def test_summary_over_pairs_against_a_hand_computation(tmp_path):
