@@ -512,18 +512,20 @@ def cells_csv(cells: list[Cell], columns: dict[str, Callable[[Cell], object]] | 
     return out.getvalue()
 
 
-def cpu_hours(cells: list[Cell]) -> float:
-    """Training, periodic and final evaluations of the cells, in hours of one thread each."""
+def thread_hours(cells: list[Cell]) -> float:
+    """Wall time of the cells' training, periodic and final evaluations, in hours of their one
+    thread each: their CPU time on idle cores, more where the cores were shared with other runs."""
     return sum(cell.train_seconds + (cell.final_seconds or 0.0) for cell in cells) / 3600
 
 
 def progress_line(cells: list[Cell], total: int) -> str:
-    """How many of ``total`` cells are finished, their CPU time and the rest's at their mean rate."""
-    hours = cpu_hours(cells)
+    """How many of ``total`` cells are finished, their one-thread hours and the rest's at their mean rate."""
+    hours = thread_hours(cells)
     rest = total - len(cells)
-    estimate = (f"; the other {rest} at their mean rate: about {hours / len(cells) * rest:.1f} CPU-hours"
+    estimate = (f"; the other {rest} at their mean rate: about {hours / len(cells) * rest:.1f} more"
                 if cells and rest else "")
-    return f"{len(cells)} of {total} cells finished, {hours:.1f} CPU-hours (one thread per cell){estimate}"
+    return (f"{len(cells)} of {total} cells finished, {hours:.1f} one-thread hours (wall time of one thread per "
+            f"cell; beside other runs it exceeds the CPU time){estimate}")
 
 
 @dataclass(frozen=True)

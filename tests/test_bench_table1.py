@@ -114,7 +114,7 @@ def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
     main(["bench", "table1", "--group", "very_hard", "--algo", "mp1", "--seed", "0", "--results", str(tmp_path),
           "--report"])
     out = capsys.readouterr().out
-    assert "4 of 5 cells finished, 1.0 CPU-hours" in out and "the other 1 at their mean rate: about 0.2" in out
+    assert "4 of 5 cells finished, 1.0 one-thread hours" in out and "the other 1 at their mean rate: about 0.2" in out
     assert "50.0 over 4/5 tasks" in (tmp_path / "table1.md").read_text()
     assert len((tmp_path / "tasks.csv").read_text().splitlines()) == 5
     assert not (tmp_path / "table1.png").exists()  # no complete seed to draw yet

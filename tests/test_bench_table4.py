@@ -49,7 +49,7 @@ def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
     success._store(config.cell_config(5), _cell("push", "mp1", 0, 5, 30))
     assert success.cell_path(config.cell_config(5), "push", "mp1", 0).stem.endswith("_d5")
     run(config, report_only=True)
-    assert "1 of 2 cells finished, 0.2 CPU-hours" in capsys.readouterr().out
+    assert "1 of 2 cells finished, 0.2 one-thread hours" in capsys.readouterr().out
     assert (tmp_path / "table4.png").stat().st_size > 0
     assert "| 5 | push | `mp1` | 30 |" in (tmp_path / "tasks.md").read_text()
     assert len((tmp_path / "cells.csv").read_text().splitlines()) == 2
