@@ -15,6 +15,7 @@ Example::
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,10 +69,8 @@ class Step:
 
 def steps(config: OrderingConfig) -> list[Step]:
     """The adjacent steps of the ranking, each with its pairs over every results directory."""
-    found = []
-    for lower, higher in zip(config.order, config.order[1:], strict=False):
-        found.append(Step(lower, higher, pairs_in(config.results, higher, lower, tasks=config.tasks)))
-    return found
+    return [Step(lower, higher, pairs_in(config.results, higher, lower, tasks=config.tasks))
+            for lower, higher in itertools.pairwise(config.order)]
 
 
 def common_cells(config: OrderingConfig) -> dict[str, list[Cell]]:
@@ -93,10 +92,9 @@ def report(config: OrderingConfig) -> str:
     lines = [f"The ranking {claimed}, step by step on the cells each two methods share (final checkpoint; "
              "same task, demonstrations, seed, settings and layouts)", ""]
     common = common_cells(config)
-    count = len(next(iter(common.values())))
-    if count:
-        tasks = sorted({cell.task for cell in next(iter(common.values()))})
-        lines += [f"On the {count} cells every method has ({', '.join(tasks)}):", "",
+    if shared := common[config.order[0]]:
+        tasks = sorted({cell.task for cell in shared})
+        lines += [f"On the {len(shared)} cells every method has ({', '.join(tasks)}):", "",
                   "| method | final wins | pooled success [95 %] | paper protocol, mean over cells |",
                   "| --- | --- | --- | --- |"]
         for method, cells in common.items():
