@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test bench reports clean
 
 $(BIN)/d2a: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -21,6 +21,18 @@ test: install
 
 bench: install
 	$(BIN)/d2a bench envs
+
+# Rewrite every report in docs/ from the cells stored there (nothing is trained or evaluated).
+OTHER_ROWS := --demos 10 --task stick-pull --task push --task lever-pull --task assembly --task hammer \
+	--algo edm --algo cp --algo flowpolicy --algo dp --algo mp1 --algo dp3
+reports: install
+	$(BIN)/d2a bench table1 --report --policy-points 128 --results docs/table1/points128
+	$(BIN)/d2a bench table4 --report --policy-points 128 --results docs/table4/points128
+	$(BIN)/d2a bench table4 --report --policy-points 128 $(OTHER_ROWS) --results docs/other_methods
+	$(BIN)/d2a bench paired --results docs/table1/points128 --results docs/table4/points128 --results docs/table4 \
+		--markdown docs/imagination_pairs.md --plot docs/imagination_pairs.png
+	$(BIN)/d2a bench order --results docs/other_methods --order dp cp dp3 flowpolicy mp1 \
+		--markdown docs/other_methods/ordering.md
 
 clean:
 	rm -rf $(VENV) *.egg-info

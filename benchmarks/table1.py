@@ -325,8 +325,8 @@ def finished_cells(config: Table1Config, max_seed: int = 10) -> list[Cell]:
 
 def run(config: Table1Config = Table1Config(), report_only: bool = False) -> list[Cell]:
     """Run the grid's missing cells (unless ``report_only``), then print and write the report of
-    every finished cell, and the CPU time the grid's cells took and the rest would take at their
-    rate; returns the grid's cells."""
+    every finished cell, and the one-thread hours the grid's cells took and the rest would take at
+    their rate; returns the grid's cells."""
     grid = plan(config)
     if not report_only:
         for settings, cells in itertools.groupby(grid, key=lambda key: config.task_cell_config(key[0])):
