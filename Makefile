@@ -32,7 +32,7 @@ reports: install
 	$(BIN)/d2a bench paired --results docs/table1/points128 --results docs/table4/points128 --results docs/table4 \
 		--markdown docs/imagination_pairs.md --plot docs/imagination_pairs.png
 	$(BIN)/d2a bench order --results docs/other_methods --order dp cp dp3 flowpolicy mp1 \
-		--markdown docs/other_methods/ordering.md
+		--markdown docs/other_methods/ordering.md --plot docs/other_methods/ordering.png
 
 clean:
 	rm -rf $(VENV) *.egg-info

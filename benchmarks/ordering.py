@@ -16,6 +16,7 @@ Example::
 from __future__ import annotations
 
 import itertools
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from benchmarks.paired import Pair, PairedSummary, cell_files, pairs_in, summari
 from benchmarks.success import Cell, read_cell
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import wilson_interval
+from d2a_agents.success_plot import save_figure
 
 
 @dataclass(frozen=True)
@@ -31,6 +33,7 @@ class OrderingConfig:
     order: tuple[str, ...]  # the claimed ranking, lowest first
     tasks: tuple[str, ...] = ()  # only these tasks' cells (cell-name spelling; none: all)
     markdown: str | None = None  # where to write the report as well as printing it (none: print only)
+    plot: str | None = None  # a PNG of the methods on their common cells and each step's verdict (none: no plot)
 
     def __post_init__(self) -> None:
         if not self.results:
@@ -122,14 +125,49 @@ def report(config: OrderingConfig) -> str:
     return "\n".join(lines)
 
 
+def plot(config: OrderingConfig, path: str | Path) -> Path:
+    """Each method's pooled final-checkpoint success on the common cells with its Wilson interval,
+    in the claimed order from the bottom up, and each step's verdict between its two methods."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    common = common_cells(config)
+    if not common[config.order[0]]:
+        raise ValueError(f"no cell is shared by every method of {list(config.order)}: nothing to plot")
+    figure, axes = plt.subplots(figsize=(6.5, 1.0 + 0.55 * len(config.order)))
+    for row, method in enumerate(config.order):
+        wins = sum(cell.final_wins for cell in common[method])
+        episodes = sum(cell.final_episodes for cell in common[method])
+        low, high = wilson_interval(wins, episodes)
+        rate = 100 * wins / episodes
+        axes.errorbar(rate, row, xerr=[[rate - 100 * low], [100 * high - rate]], fmt="o", color="tab:blue", capsize=3)
+    for row, step in enumerate(steps(config)):
+        axes.text(1, row + 0.5, f"{step.lower} < {step.higher}: {step.verdict}", fontsize=7, va="center",
+                  color="grey")
+    axes.set_yticks(range(len(config.order)), config.order)
+    axes.set_xlim(0, 100)
+    axes.set_xlabel(f"final-checkpoint success on the {len(common[config.order[0]])} cells all share (%, 95 %)")
+    return save_figure(figure, path)
+
+
 def run(config: OrderingConfig) -> str:
     text = report(config)
     print(text)
+    if config.plot:
+        print(f"plot: {plot(config, config.plot)}")
     if config.markdown:
         options = [*(f"--results {directory}" for directory in config.results),
                    f"--order {' '.join(config.order)}", *(f"--task {task}" for task in config.tasks)]
+        if config.plot:
+            options.append(f"--plot {config.plot}")
         page = [f"# The ranking {' < '.join(config.order)}", "",
-                f"Written by `d2a bench order {' '.join(options)} --markdown {config.markdown}`.", "", text, ""]
+                f"Written by `d2a bench order {' '.join(options)} --markdown {config.markdown}`.", ""]
+        if config.plot:
+            relative = os.path.relpath(config.plot, Path(config.markdown).parent)
+            page += [f"![each method on the cells all share, each step's verdict]({relative})", ""]
+        page += [text, ""]
         atomic_write_text(Path(config.markdown), "\n".join(page))
         print(f"report: {config.markdown}")
     return text

@@ -211,7 +211,7 @@ def cmd_bench_order(args: argparse.Namespace) -> None:
     from benchmarks.ordering import OrderingConfig, run
 
     run(OrderingConfig(results=tuple(args.results), order=tuple(args.order),
-                       tasks=tuple(args.task) if args.task else (), markdown=args.markdown))
+                       tasks=tuple(args.task) if args.task else (), markdown=args.markdown, plot=args.plot))
 
 
 def cmd_bench_ray(args: argparse.Namespace) -> None:
@@ -462,6 +462,8 @@ def add_bench_commands(commands: Any) -> None:
     add_cell_reading_options(bench_order)
     bench_order.add_argument("--order", nargs="+", choices=ALGOS, required=True,
                              help="the claimed ranking, lowest first (e.g. dp cp dp3 flowpolicy mp1)")
+    bench_order.add_argument("--plot", default=None,
+                             help="a PNG of the methods on the cells all share and each step's verdict (default: none)")
     bench_order.set_defaults(func=cmd_bench_order)
 
     bench_ray = bench.add_parser("ray", help="the same small bench success grid on 1 and 2 Ray CPUs: wall time")
