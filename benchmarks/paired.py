@@ -26,11 +26,15 @@ import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
+from scipy.stats import spearmanr
 from scipy.stats import t as student_t
 
 from benchmarks.success import Cell, read_cell
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import wilson_interval
+from d2a_agents.checkpoint import load_checkpoint
+from d2a_agents.policy.checkpoints import CHECKPOINT_NAME
+from d2a_agents.policy.perception import Reliance
 from d2a_agents.success_plot import save_figure
 
 
@@ -43,6 +47,7 @@ class PairedConfig:
     plot: str | None = None  # where to draw the per-pair differences (none: no plot)
     markdown: str | None = None  # where to write the report as well as printing it (none: print only)
     tasks: tuple[str, ...] = ()  # only these tasks' pairs (cell-name spelling, e.g. adroit-door; none: all)
+    runs: tuple[str, ...] = ()  # work directories whose runs/<cell name>/ hold the cells' checkpoints (none: not read)
 
     def __post_init__(self) -> None:
         if not self.results:
@@ -124,6 +129,34 @@ def pairs_in(directories: tuple[str, ...], algo: str, control: str, reference: s
     return pairs
 
 
+def second_cloud_reliance(cell: Cell, pair_name: str, runs: tuple[str, ...]) -> float | None:
+    """How much ``cell``'s policy reads its second cloud (the imagined one, or the control's second copy
+    of the present): its last perception check's error with that cloud alone shuffled over the intact
+    error, from ``<dir>/runs/<cell name>/`` of the first of ``runs`` holding it; None where none does
+    or the policy has no second cloud."""
+    name = f"{cell.task}_{cell.algo}_{pair_name[len(cell.task) + 1:]}"
+    path = next((found for directory in runs if (found := Path(directory) / "runs" / name / CHECKPOINT_NAME).is_file()),
+                None)
+    checks = load_checkpoint(path, "policy").get("reliance") if path is not None else None
+    return Reliance.from_record(checks[-1]).imagined_ratio if checks else None
+
+
+def reliance_sentence(pairs: list[Pair], ratios: list[tuple[float | None, float | None]], algo: str,
+                      control: str) -> str:
+    """The two sides' reliance on their second cloud over the pairs that have both, and whether
+    ``algo``'s reliance goes with its difference from ``control`` (Spearman's rank correlation)."""
+    known = [(pair.difference, mine, theirs) for pair, (mine, theirs) in zip(pairs, ratios, strict=True)
+             if mine is not None and theirs is not None]
+    if len(known) < 3:
+        return f"Reliance on the second cloud: {len(known)} pair(s) with both checkpoints, too few to read."
+    differences, mine, theirs = zip(*known, strict=True)
+    rho, p_value = spearmanr(mine, differences)
+    return (f"Reliance on the second cloud (final perception check, that cloud alone shuffled over intact), over the "
+            f"{len(known)} pairs with both checkpoints: `{algo}` median x{statistics.median(mine):.1f}, `{control}` "
+            f"median x{statistics.median(theirs):.1f}; Spearman's rho between `{algo}`'s reliance and its difference "
+            f"from `{control}`: {rho:+.2f} (p = {p_value:.2f}).")
+
+
 def against_reference(pairs: list[Pair]) -> list[Pair]:
     """The pairs that have a reference cell, re-paired as ``algo`` against the reference."""
     return [Pair(pair.name, pair.treated, pair.reference) for pair in pairs if pair.reference is not None]
@@ -189,16 +222,23 @@ def report(pairs: list[Pair], config: PairedConfig) -> str:
     a, b = f"`{config.algo}`", f"`{config.control}`"
     referenced = against_reference(pairs)
     third = [f"`{config.reference}`"] if referenced else []
+    ratios = [(second_cloud_reliance(pair.treated, pair.name, config.runs),
+               second_cloud_reliance(pair.control, pair.name, config.runs)) for pair in pairs] if config.runs else []
+    reads = [f"{a} second cloud alone x", f"{b} second cloud alone x"] if ratios else []
+    columns = ["cell", a, b, "difference (points)", *third, *reads]
     lines = [f"{a} against {b} on the cells they share (final checkpoint; same task, demonstrations, "
              "seed, settings and layouts)", "",
-             "| " + " | ".join(["cell", a, b, "difference (points)", *third]) + " |",
-             "| " + " | ".join(["---"] * (4 + len(third))) + " |"]
-    for pair in pairs:
+             "| " + " | ".join(columns) + " |", "| " + " | ".join(["---"] * len(columns)) + " |"]
+    for index, pair in enumerate(pairs):
         row = [pair.name, _wins(pair.treated), _wins(pair.control), f"{100 * pair.difference:+.0f}"]
         if third:
             row.append(_wins(pair.reference) if pair.reference is not None else "-")
+        if ratios:
+            row += ["-" if ratio is None else f"{ratio:.1f}" for ratio in ratios[index]]
         lines.append("| " + " | ".join(row) + " |")
     lines += ["", summary_sentence(pairs, config.algo, config.control)]
+    if ratios:
+        lines += ["", reliance_sentence(pairs, ratios, config.algo, config.control)]
     if referenced:
         lines += ["", f"Against `{config.reference}` on the pairs with its cell: "
                       f"{summary_sentence(referenced, config.algo, config.reference)}"]
@@ -271,7 +311,8 @@ def run(config: PairedConfig) -> list[Pair]:
 def markdown_page(text: str, config: PairedConfig) -> str:
     """``report``'s text as a page: a title, the command that rewrites it, the plot (when drawn)."""
     options = [*(f"--results {directory}" for directory in config.results), f"--algo {config.algo}",
-               f"--control {config.control}", *(f"--task {task}" for task in config.tasks)]
+               f"--control {config.control}", *(f"--task {task}" for task in config.tasks),
+               *(f"--runs {directory}" for directory in config.runs)]
     if config.reference:
         options.append(f"--reference {config.reference}")
     if config.plot:

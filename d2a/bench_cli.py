@@ -204,7 +204,7 @@ def cmd_bench_paired(args: argparse.Namespace) -> None:
 
     run(replace_given(PairedConfig(results=tuple(args.results)), algo=args.algo, control=args.control,
                        reference=args.reference, plot=args.plot, markdown=args.markdown,
-                       tasks=tuple(args.task) if args.task else None))
+                       tasks=tuple(args.task) if args.task else None, runs=tuple(args.runs) if args.runs else None))
 
 
 def cmd_bench_order(args: argparse.Namespace) -> None:
@@ -455,6 +455,9 @@ def add_bench_commands(commands: Any) -> None:
                               help="a third method shown beside each pair and compared with --algo over the pairs "
                                    "that have its cell (default: mp1)")
     bench_paired.add_argument("--plot", default=None, help="a PNG of the per-pair differences (default: none)")
+    bench_paired.add_argument("--runs", action="append", default=None, metavar="WORKDIR",
+                              help="a grid's work directory (its runs/ hold the cells' checkpoints): adds each side's "
+                                   "reliance on its second cloud (repeatable; default: none)")
     bench_paired.set_defaults(func=cmd_bench_paired)
 
     bench_order = bench.add_parser("order", help="does a claimed ranking of methods hold? each adjacent step "

@@ -18,10 +18,12 @@ from benchmarks.paired import (
     newcombe_interval,
     pair_cells,
     pairs_in,
+    report,
     summarize_pairs,
 )
 from benchmarks.success import Cell
 from d2a.cli import main
+from d2a_agents.checkpoint import save_checkpoint
 
 
 def _write(directory, name: str, wins: int, episodes: int = 100) -> None:
@@ -66,6 +68,28 @@ def test_a_pair_copied_into_another_grid_counts_once(tmp_path):
     assert [pair.treated.final_wins for pair in pairs_in(grids, "d2a", "d2a-present")] == [70, 64]
     assert len(pairs_in(grids, "d2a-present", "mp1")) == 1
     assert pairs_in(grids, "d2a-present", "mp1", tasks=("stick-pull",)) == []
+
+
+def test_each_side_s_reliance_on_its_second_cloud_comes_from_its_run_s_checkpoint(tmp_path):
+    def check(imagined: float) -> dict:
+        return {"step": 4000, "where": "training", "windows": 8, "intact": 0.1, "clouds_shuffled": 1.0,
+                "state_shuffled": 0.5, "imagined_shuffled": 0.1 * imagined}
+
+    # (d2a wins, its ratio; control wins, its ratio): differences -5, +10, +15 rise with d2a's ratios 2, 4, 8
+    sides = [(55, 2, 60, 1.5), (70, 4, 60, 3), (75, 8, 60, 1)]
+    for seed, (wins, ratio, control_wins, control_ratio) in enumerate(sides):
+        for algo, won, times in (("d2a", wins, ratio), ("d2a-present", control_wins, control_ratio)):
+            _write(tmp_path / "grid", f"push_{algo}_s{seed}_e5", won)
+            save_checkpoint(tmp_path / "work" / "runs" / f"push_{algo}_s{seed}_e5" / "policy.pt", "policy",
+                            {"reliance": [check(times)]})
+    _write(tmp_path / "grid", "push_d2a_s3_e5", 50)  # a pair whose runs are not at hand
+    _write(tmp_path / "grid", "push_d2a-present_s3_e5", 50)
+    config = PairedConfig(results=(str(tmp_path / "grid"),), runs=(str(tmp_path / "elsewhere"), str(tmp_path / "work")))
+    text = report(pairs_in(config.results, "d2a", "d2a-present"), config)
+    assert "| push_s1_e5 | 70/100 | 60/100 | +10 | 4.0 | 3.0 |" in text
+    assert "| push_s3_e5 | 50/100 | 50/100 | +0 | - | - |" in text
+    assert "over the 3 pairs with both checkpoints: `d2a` median x4.0, `d2a-present` median x1.5" in text
+    assert "Spearman's rho between `d2a`'s reliance and its difference from `d2a-present`: +1.00" in text
 
 
 def test_summary_over_pairs_against_a_hand_computation(tmp_path):
