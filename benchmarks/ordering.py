@@ -16,11 +16,10 @@ Example::
 from __future__ import annotations
 
 import itertools
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.paired import Pair, PairedSummary, cell_files, pairs_in, summarize_pairs
+from benchmarks.paired import Pair, PairedSummary, cell_files, pairs_in, report_page, summarize_pairs
 from benchmarks.success import Cell, read_cell
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import wilson_interval
@@ -162,12 +161,9 @@ def run(config: OrderingConfig) -> str:
                    f"--order {' '.join(config.order)}", *(f"--task {task}" for task in config.tasks)]
         if config.plot:
             options.append(f"--plot {config.plot}")
-        page = [f"# The ranking {' < '.join(config.order)}", "",
-                f"Written by `d2a bench order {' '.join(options)} --markdown {config.markdown}`.", ""]
-        if config.plot:
-            relative = os.path.relpath(config.plot, Path(config.markdown).parent)
-            page += [f"![each method on the cells all share, each step's verdict]({relative})", ""]
-        page += [text, ""]
-        atomic_write_text(Path(config.markdown), "\n".join(page))
+        caption = "each method on the cells all share, each step's verdict"
+        page = report_page(f"The ranking {' < '.join(config.order)}", f"d2a bench order {' '.join(options)}",
+                           config.markdown, config.plot, caption, text)
+        atomic_write_text(Path(config.markdown), page)
         print(f"report: {config.markdown}")
     return text

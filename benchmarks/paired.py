@@ -308,6 +308,15 @@ def run(config: PairedConfig) -> list[Pair]:
     return pairs
 
 
+def report_page(title: str, command: str, markdown: str, plot: str | None, caption: str, text: str) -> str:
+    """A report's text as a markdown page: its title, the command that rewrites it (given
+    ``--markdown markdown``), its plot (when drawn, linked from the page's directory) and the text."""
+    lines = [f"# {title}", "", f"Written by `{command} --markdown {markdown}`.", ""]
+    if plot:
+        lines += [f"![{caption}]({os.path.relpath(plot, Path(markdown).parent)})", ""]
+    return "\n".join([*lines, text, ""])
+
+
 def markdown_page(text: str, config: PairedConfig) -> str:
     """``report``'s text as a page: a title, the command that rewrites it, the plot (when drawn)."""
     options = [*(f"--results {directory}" for directory in config.results), f"--algo {config.algo}",
@@ -317,9 +326,6 @@ def markdown_page(text: str, config: PairedConfig) -> str:
         options.append(f"--reference {config.reference}")
     if config.plot:
         options.append(f"--plot {config.plot}")
-    lines = [f"# `{config.algo}` against `{config.control}`, cell by cell", "",
-             f"Written by `d2a bench paired {' '.join(options)} --markdown {config.markdown}`.", ""]
-    if config.plot:
-        relative = os.path.relpath(config.plot, Path(config.markdown).parent)
-        lines += [f"![each pair's difference with its interval; the mean over pairs]({relative})", ""]
-    return "\n".join([*lines, text, ""])
+    return report_page(f"`{config.algo}` against `{config.control}`, cell by cell",
+                       f"d2a bench paired {' '.join(options)}", config.markdown, config.plot,
+                       "each pair's difference with its interval; the mean over pairs", text)
