@@ -15,7 +15,9 @@ Example::
 
 With a ``reference`` method (the baseline both should beat, ``mp1`` by default), each pair also
 shows the reference's cell of the same name where there is one, and the pairs that have one are
-summarised against it too: is ``algo`` above both its control and the baseline?
+summarised against it too: is ``algo`` above both its control and the baseline? With ``runs``
+(the grids' work directories), each side also shows how much its policy reads its second cloud
+(its checkpoint's last perception check), and whether that goes with the difference.
 """
 
 from __future__ import annotations
