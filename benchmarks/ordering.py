@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
-from benchmarks.paired import Pair, PairedSummary, cell_files, pairs_in, report_page, summarize_pairs
+from benchmarks.paired import Pair, PairedSummary, cell_files, pairs_in, report_page, split_cell_name, summarize_pairs
 from benchmarks.success import Cell, read_cell
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import wilson_interval
@@ -51,7 +52,7 @@ class Step:
     higher: str
     pairs: list[Pair]
 
-    @property
+    @cached_property
     def summary(self) -> PairedSummary | None:
         return summarize_pairs(self.pairs) if self.pairs else None
 
@@ -81,27 +82,49 @@ def common_cells(config: OrderingConfig) -> dict[str, list[Cell]]:
     by_method: dict[str, dict[str, Path]] = {method: {} for method in config.order}
     for directory in config.results:
         for path in cell_files(directory):
-            parts = path.stem.split("_", 2)
-            if len(parts) == 3 and parts[1] in by_method and (not config.tasks or parts[0] in config.tasks):
-                by_method[parts[1]].setdefault(f"{parts[0]}_{parts[2]}", path)
+            task, method, rest = split_cell_name(path.stem)
+            if method in by_method and (not config.tasks or task in config.tasks):
+                by_method[method].setdefault(f"{task}_{rest}", path)
     shared = set.intersection(*(set(names) for names in by_method.values()))
     return {method: [read_cell(by_method[method][name]) for name in sorted(shared)] for method in config.order}
 
 
-def report(config: OrderingConfig) -> str:
+@dataclass(frozen=True)
+class Ranking:
+    """What the report and the plot read, gathered once: each method's common cells and the steps."""
+
+    order: tuple[str, ...]
+    common: dict[str, list[Cell]]
+    steps: list[Step]
+
+    @property
+    def shared(self) -> int:
+        """How many cells every method has."""
+        return len(self.common[self.order[0]])
+
+
+def rank(config: OrderingConfig) -> Ranking:
+    return Ranking(config.order, common_cells(config), steps(config))
+
+
+def pooled_success(cells: list[Cell]) -> tuple[int, int, float, float]:
+    """Final wins and episodes pooled over ``cells``, with the 95 % Wilson interval of their rate."""
+    wins, episodes = sum(cell.final_wins for cell in cells), sum(cell.final_episodes for cell in cells)
+    return (wins, episodes, *wilson_interval(wins, episodes))
+
+
+def report(ranking: Ranking) -> str:
     """Markdown: the methods on their common cells, then each step of the ranking and its verdict."""
-    claimed = " < ".join(f"`{method}`" for method in config.order)
+    claimed = " < ".join(f"`{method}`" for method in ranking.order)
     lines = [f"The ranking {claimed}, step by step on the cells each two methods share (final checkpoint; "
              "same task, demonstrations, seed, settings and layouts)", ""]
-    common = common_cells(config)
-    if shared := common[config.order[0]]:
-        tasks = sorted({cell.task for cell in shared})
-        lines += [f"On the {len(shared)} cells every method has ({', '.join(tasks)}):", "",
+    if ranking.shared:
+        tasks = sorted({cell.task for cell in ranking.common[ranking.order[0]]})
+        lines += [f"On the {ranking.shared} cells every method has ({', '.join(tasks)}):", "",
                   "| method | final wins | pooled success [95 %] | paper protocol, mean over cells |",
                   "| --- | --- | --- | --- |"]
-        for method, cells in common.items():
-            wins, episodes = sum(c.final_wins for c in cells), sum(c.final_episodes for c in cells)
-            low, high = wilson_interval(wins, episodes)
+        for method, cells in ranking.common.items():
+            wins, episodes, low, high = pooled_success(cells)
             paper = 100 * sum(c.paper for c in cells) / len(cells)
             lines.append(f"| `{method}` | {wins}/{episodes} | {100 * wins / episodes:.1f} "
                          f"[{100 * low:.1f}-{100 * high:.1f}] | {paper:.1f} |")
@@ -110,7 +133,7 @@ def report(config: OrderingConfig) -> str:
     lines += ["", "| claimed | pairs | higher ahead / level / behind | mean difference (points) [95 %, t] | "
                   "pooled difference [95 %, Newcombe] | verdict |",
               "| --- | --- | --- | --- | --- | --- |"]
-    for step in steps(config):
+    for step in ranking.steps:
         summary = step.summary
         if summary is None:
             cells = ["0", "-", "-", "-"]
@@ -124,7 +147,7 @@ def report(config: OrderingConfig) -> str:
     return "\n".join(lines)
 
 
-def plot(config: OrderingConfig, path: str | Path) -> Path:
+def plot(ranking: Ranking, path: str | Path) -> Path:
     """Each method's pooled final-checkpoint success on the common cells with its Wilson interval,
     in the claimed order from the bottom up, and each step's verdict between its two methods."""
     import matplotlib
@@ -132,30 +155,28 @@ def plot(config: OrderingConfig, path: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    common = common_cells(config)
-    if not common[config.order[0]]:
-        raise ValueError(f"no cell is shared by every method of {list(config.order)}: nothing to plot")
-    figure, axes = plt.subplots(figsize=(6.5, 1.0 + 0.55 * len(config.order)))
-    for row, method in enumerate(config.order):
-        wins = sum(cell.final_wins for cell in common[method])
-        episodes = sum(cell.final_episodes for cell in common[method])
-        low, high = wilson_interval(wins, episodes)
+    if not ranking.shared:
+        raise ValueError(f"no cell is shared by every method of {list(ranking.order)}: nothing to plot")
+    figure, axes = plt.subplots(figsize=(6.5, 1.0 + 0.55 * len(ranking.order)))
+    for row, method in enumerate(ranking.order):
+        wins, episodes, low, high = pooled_success(ranking.common[method])
         rate = 100 * wins / episodes
         axes.errorbar(rate, row, xerr=[[rate - 100 * low], [100 * high - rate]], fmt="o", color="tab:blue", capsize=3)
-    for row, step in enumerate(steps(config)):
+    for row, step in enumerate(ranking.steps):
         axes.text(1, row + 0.5, f"{step.lower} < {step.higher}: {step.verdict}", fontsize=7, va="center",
                   color="grey")
-    axes.set_yticks(range(len(config.order)), config.order)
+    axes.set_yticks(range(len(ranking.order)), ranking.order)
     axes.set_xlim(0, 100)
-    axes.set_xlabel(f"final-checkpoint success on the {len(common[config.order[0]])} cells all share (%, 95 %)")
+    axes.set_xlabel(f"final-checkpoint success on the {ranking.shared} cells all share (%, 95 %)")
     return save_figure(figure, path)
 
 
 def run(config: OrderingConfig) -> str:
-    text = report(config)
+    ranking = rank(config)
+    text = report(ranking)
     print(text)
     if config.plot:
-        print(f"plot: {plot(config, config.plot)}")
+        print(f"plot: {plot(ranking, config.plot)}")
     if config.markdown:
         options = [*(f"--results {directory}" for directory in config.results),
                    f"--order {' '.join(config.order)}", *(f"--task {task}" for task in config.tasks)]

@@ -107,7 +107,7 @@ def find_pairs(files: list[Path], algo: str, control: str, reference: str | None
     by_name = {path.stem: path for path in files}
     pairs = []
     for stem, path in by_name.items():
-        task, method, rest = _split(stem)
+        task, method, rest = split_cell_name(stem)
         twin = by_name.get(f"{task}_{control}_{rest}")
         if method == algo and twin is not None:
             third = by_name.get(f"{task}_{reference}_{rest}") if reference else None
@@ -182,7 +182,7 @@ def grid_note(cells: list[Cell], algo: str = "d2a", control: str = "d2a-present"
                 f"layouts; `d2a bench paired`): {summary_sentence(pairs, algo, control)}"]
 
 
-def _split(stem: str) -> tuple[str, str, str]:
+def split_cell_name(stem: str) -> tuple[str, str, str]:
     """(task, method, the rest) of a cell name ``<task>_<method>_<rest>``."""
     parts = stem.split("_", 2)
     return (parts[0], parts[1], parts[2]) if len(parts) == 3 else (stem, "", "")

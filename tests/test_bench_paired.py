@@ -9,7 +9,7 @@ import math
 import pytest
 
 from benchmarks import table4
-from benchmarks.ordering import OrderingConfig, common_cells, plot, steps
+from benchmarks.ordering import OrderingConfig, common_cells, plot, rank, steps
 from benchmarks.paired import (
     PairedConfig,
     cell_files,
@@ -201,9 +201,9 @@ def test_each_step_of_a_ranking_gets_its_verdict_from_a_hand_computed_interval(t
     common = common_cells(config)
     assert [len(cells) for cells in common.values()] == [3, 3, 3, 3]  # Stick-Pull is not common to all
     assert sum(cell.final_wins for cell in common["dp"]) == 60
-    assert plot(config, tmp_path / "order.png").stat().st_size > 0
+    assert plot(rank(config), tmp_path / "order.png").stat().st_size > 0
     with pytest.raises(ValueError, match="no cell is shared"):
-        plot(OrderingConfig(results=(str(tmp_path),), order=("dp", "flowpolicy")), tmp_path / "none.png")
+        plot(rank(OrderingConfig(results=(str(tmp_path),), order=("dp", "flowpolicy"))), tmp_path / "none.png")
 
     main(["bench", "order", "--results", str(tmp_path), "--order", "dp", "flowpolicy"])
     out = capsys.readouterr().out
