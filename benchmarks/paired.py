@@ -15,9 +15,10 @@ Example::
 
 With a ``reference`` method (the baseline both should beat, ``mp1`` by default), each pair also
 shows the reference's cell of the same name where there is one, and the pairs that have one are
-summarised against it too: is ``algo`` above both its control and the baseline? With ``runs``
-(the grids' work directories), each side also shows how much its policy reads its second cloud
-(its checkpoint's last perception check), and whether that goes with the difference.
+summarised against it too: is ``algo`` above both its control and the baseline? Each side also
+shows how much its policy reads its second cloud (its last perception check, as its cell keeps it,
+or for cells stored before they kept it, its checkpoint in one of ``runs``, the grids' work
+directories), and whether that goes with the difference.
 """
 
 from __future__ import annotations
@@ -134,13 +135,16 @@ def pairs_in(directories: tuple[str, ...], algo: str, control: str, reference: s
 def second_cloud_reliance(cell: Cell, pair_name: str, runs: tuple[str, ...]) -> float | None:
     """How much ``cell``'s policy reads its second cloud (the imagined one, or the control's second copy
     of the present): its last perception check's error with that cloud alone shuffled over the intact
-    error, from ``<dir>/runs/<cell name>/`` of the first of ``runs`` holding it; None where none does
-    or the policy has no second cloud."""
-    name = f"{cell.task}_{cell.algo}_{pair_name[len(cell.task) + 1:]}"
-    path = next((found for directory in runs if (found := Path(directory) / "runs" / name / CHECKPOINT_NAME).is_file()),
-                None)
-    checks = load_checkpoint(path, "policy").get("reliance") if path is not None else None
-    return Reliance.from_record(checks[-1]).imagined_ratio if checks else None
+    error, as the cell keeps it, else from ``<dir>/runs/<cell name>/`` of the first of ``runs`` holding
+    its checkpoint; None where neither has it or the policy has no second cloud."""
+    check = cell.reliance
+    if check is None:
+        name = f"{cell.task}_{cell.algo}_{pair_name[len(cell.task) + 1:]}"
+        path = next((found for directory in runs
+                     if (found := Path(directory) / "runs" / name / CHECKPOINT_NAME).is_file()), None)
+        checks = load_checkpoint(path, "policy").get("reliance") if path is not None else None
+        check = checks[-1] if checks else None
+    return Reliance.from_record(check).imagined_ratio if check is not None else None
 
 
 def reliance_sentence(pairs: list[Pair], ratios: list[tuple[float | None, float | None]], algo: str,
@@ -225,7 +229,9 @@ def report(pairs: list[Pair], config: PairedConfig) -> str:
     referenced = against_reference(pairs)
     third = [f"`{config.reference}`"] if referenced else []
     ratios = [(second_cloud_reliance(pair.treated, pair.name, config.runs),
-               second_cloud_reliance(pair.control, pair.name, config.runs)) for pair in pairs] if config.runs else []
+               second_cloud_reliance(pair.control, pair.name, config.runs)) for pair in pairs]
+    if all(ratio == (None, None) for ratio in ratios):
+        ratios = []  # neither the cells nor the runs hold a perception check: no columns
     reads = [f"{a} second cloud alone x", f"{b} second cloud alone x"] if ratios else []
     columns = ["cell", a, b, "difference (points)", *third, *reads]
     lines = [f"{a} against {b} on the cells they share (final checkpoint; same task, demonstrations, "

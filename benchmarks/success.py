@@ -179,6 +179,9 @@ class Cell:
     that sum hold only the last call's); ``final_seconds``: the
     final evaluation's (``None`` in cells stored before it was recorded). ``demos``: the
     demonstrations it trained on (cells stored before it was recorded trained on 10).
+    ``reliance``: the policy's last perception check as its checkpoint stores it (how much each
+    input is read: one-step error with that input shuffled), kept with the cell so that the
+    mechanism outlives the work directory (``None``: not checked, or stored before it was kept).
     """
 
     task: str
@@ -190,6 +193,7 @@ class Cell:
     train_seconds: float
     final_seconds: float | None = None
     demos: int = DEFAULT_DEMOS
+    reliance: dict[str, float | int | str | None] | None = None
 
     @property
     def paper(self) -> float:
@@ -304,7 +308,9 @@ def run_cell(
     _, history = train_policy(train)
     call_seconds = time.perf_counter() - started
     checkpoint = Path(train.out) / CHECKPOINT_NAME
-    train_seconds = load_checkpoint(checkpoint, "policy").get("wall_seconds") or call_seconds
+    payload = load_checkpoint(checkpoint, "policy")
+    train_seconds = payload.get("wall_seconds") or call_seconds
+    checks = payload.get("reliance") or [None]
     if config.final_episodes:
         final = evaluate_checkpoint(checkpoint, task, config.final_episodes, config.final_seed,
                                     workers=workers, end_on_success=True, progress=train.progress,
@@ -313,7 +319,7 @@ def run_cell(
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes
     return Cell(task, algo, seed, [point.success_rate for point in history], wins, episodes, train_seconds,
-                time.perf_counter() - started - call_seconds, config.demos)
+                time.perf_counter() - started - call_seconds, config.demos, checks[-1])
 
 
 def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> str:

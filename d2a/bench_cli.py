@@ -456,8 +456,9 @@ def add_bench_commands(commands: Any) -> None:
                                    "that have its cell (default: mp1)")
     bench_paired.add_argument("--plot", default=None, help="a PNG of the per-pair differences (default: none)")
     bench_paired.add_argument("--runs", action="append", default=None, metavar="WORKDIR",
-                              help="a grid's work directory (its runs/ hold the cells' checkpoints): adds each side's "
-                                   "reliance on its second cloud (repeatable; default: none)")
+                              help="a grid's work directory (its runs/ hold the cells' checkpoints): each side's "
+                                   "reliance on its second cloud for cells stored before they kept their own "
+                                   "perception check (repeatable; default: none)")
     bench_paired.set_defaults(func=cmd_bench_paired)
 
     bench_order = bench.add_parser("order", help="does a claimed ranking of methods hold? each adjacent step "

@@ -26,9 +26,10 @@ from d2a.cli import main
 from d2a_agents.checkpoint import save_checkpoint
 
 
-def _write(directory, name: str, wins: int, episodes: int = 100) -> None:
+def _write(directory, name: str, wins: int, episodes: int = 100, reliance: dict | None = None) -> None:
     task, algo, rest = name.split("_", 2)
-    cell = Cell(task, algo, int(rest.split("_")[0][1:]), [wins / episodes], wins, episodes, train_seconds=1.0)
+    cell = Cell(task, algo, int(rest.split("_")[0][1:]), [wins / episodes], wins, episodes, train_seconds=1.0,
+                reliance=reliance)
     directory.mkdir(parents=True, exist_ok=True)
     (directory / f"{name}.json").write_text(json.dumps(dataclasses.asdict(cell)))
 
@@ -90,6 +91,19 @@ def test_each_side_s_reliance_on_its_second_cloud_comes_from_its_run_s_checkpoin
     assert "| push_s3_e5 | 50/100 | 50/100 | +0 | - | - |" in text
     assert "over the 3 pairs with both checkpoints: `d2a` median x4.0, `d2a-present` median x1.5" in text
     assert "Spearman's rho between `d2a`'s reliance and its difference from `d2a-present`: +1.00" in text
+
+
+def test_a_cell_s_own_perception_check_is_read_before_any_run_s(tmp_path):
+    check = {"step": 4000, "where": "training", "windows": 8, "intact": 0.1, "clouds_shuffled": 1.0,
+             "state_shuffled": 0.5}
+    for algo, wins, imagined in (("d2a", 70, 0.6), ("d2a-present", 60, 0.2)):
+        _write(tmp_path / "grid", f"push_{algo}_s0_e5", wins, reliance={**check, "imagined_shuffled": imagined})
+    save_checkpoint(tmp_path / "work" / "runs" / "push_d2a_s0_e5" / "policy.pt", "policy",
+                    {"reliance": [{**check, "imagined_shuffled": 9.0}]})  # the cell's own check wins
+    row = "| push_s0_e5 | 70/100 | 60/100 | +10 | 6.0 | 2.0 |"
+    for config in (PairedConfig(results=(str(tmp_path / "grid"),), runs=(str(tmp_path / "work"),)),
+                   PairedConfig(results=(str(tmp_path / "grid"),))):  # with the runs at hand and without
+        assert row in report(pairs_in(config.results, "d2a", "d2a-present"), config)
 
 
 def test_summary_over_pairs_against_a_hand_computation(tmp_path):

@@ -54,7 +54,9 @@ def test_tiny_run_writes_cells_and_a_rerun_reads_them(tmp_path, monkeypatch):
     stored = json.loads(bench.cell_path(config, "reach", "mp1", 0).read_text())
     assert stored["periodic"] == cell.periodic
     trained = tmp_path / "runs" / bench._cell_name(config, "reach", "mp1", 0) / "policy.pt"
-    assert cell.train_seconds == load_checkpoint(trained, "policy")["wall_seconds"]  # summed over resumed calls
+    payload = load_checkpoint(trained, "policy")
+    assert cell.train_seconds == payload["wall_seconds"]  # summed over resumed calls
+    assert stored["reliance"] == payload["reliance"][-1] and stored["reliance"]["intact"] > 0  # kept with the cell
     assert (tmp_path / "success.png").stat().st_size > 0
     # A cell on the first demonstration of the pool of two: named apart, trained on episode 0 only.
     (one,) = bench.run(dataclasses.replace(config, demos=1, pool=2))
