@@ -7,6 +7,10 @@ process, one after the other, so that the ratios are measured side by side.
 from __future__ import annotations
 
 import itertools
+import os
+import statistics
+import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -33,6 +37,9 @@ class EnvBenchConfig:
     vector_processes: int = 2
     agreement_tasks: tuple[str, ...] = ("hammer", "assembly", "push", "basketball")
     agreement_cameras: tuple[str, ...] = ("corner4", "corner2", "topview")
+    render_rounds: int = 6  # the llvmpipe thread comparison: alternating runs of each setting
+    render_image_size: int = 256  # ... at the grids' clouds (256-px depth, 4096 points)
+    render_points: int = 4096
 
 
 def steps_per_second(env: gym.Env, steps: int, seed: int) -> float:
@@ -89,6 +96,36 @@ def backend_agreement(config: EnvBenchConfig) -> None:
         one = np.mean(np.isfinite(ray) ^ np.isfinite(render))
         print(f"| {task} | {camera} | {both.sum()} | {100 * within:.2f} % | {100 * one:.2f} % |")
         env.close()
+
+
+def render_thread_comparison(config: EnvBenchConfig) -> dict[str, float]:
+    """Median ms per ``render`` step with llvmpipe's own thread pool (``LP_NUM_THREADS`` unset) and
+    drawing in the calling thread (``0``, what ``software_render_threads(1)`` picks), each in a fresh
+    process (Mesa reads the variable once), alternating over ``render_rounds`` rounds so that both
+    meet the same load; prints each round and the medians."""
+    script = ("import sys, gymnasium as gym, d2a_envs\n"
+              "from benchmarks.envs import steps_per_second\n"
+              f"env = gym.make({d2a_envs.get_task(config.task).env_id!r}, backend='render', "
+              f"image_size={config.render_image_size}, num_points={config.render_points})\n"
+              f"steps_per_second(env, 5, {config.seed})  # the GL context and first frames, not timed\n"
+              f"print(1000 / steps_per_second(env, {config.steps}, {config.seed}))\n")
+    settings = {"llvmpipe's pool (unset)": None, "calling thread (0)": "0"}
+    times: dict[str, list[float]] = {name: [] for name in settings}
+    print(f"\n{config.task}, render backend, {config.render_image_size} px, {config.render_points} points, "
+          f"{config.steps} steps per run, torch and OpenMP at one thread")
+    for round_index, (name, value) in itertools.product(range(config.render_rounds), settings.items()):
+        env = {key: item for key, item in os.environ.items() if key != "LP_NUM_THREADS"} | {"OMP_NUM_THREADS": "1"}
+        env |= {"LP_NUM_THREADS": value} if value is not None else {}
+        finished = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+        times[name].append(float(finished.stdout.split()[-1]))
+        print(f"  round {round_index + 1}, {name}: {times[name][-1]:.1f} ms/step", flush=True)
+    medians = {name: statistics.median(values) for name, values in times.items()}
+    pool, calling = medians.values()
+    print("| LP_NUM_THREADS | median ms/step |\n| --- | --- |")
+    for name, median in medians.items():
+        print(f"| {name} | {median:.1f} |")
+    print(f"calling thread / pool: {calling / pool:.2f}x the time")
+    return medians
 
 
 def run(config: EnvBenchConfig = EnvBenchConfig()) -> list[dict[str, object]]:

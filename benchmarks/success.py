@@ -67,6 +67,7 @@ from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyCon
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
 from d2a_agents.world_model.triplane import CPU_PRESET, WorldModelConfig
+from d2a_envs.gl import software_render_threads
 
 # The paper's MP1 / D2A success (%): Table IV (Meta-World, 10 demonstrations; no Hammer
 # column) and Table I's Adroit columns.
@@ -477,6 +478,7 @@ def run_grid(config: SuccessBenchConfig, grid: list[tuple[str, str, int]]) -> li
     """The (task, algo, seed) cells of ``grid`` in its order, finished ones read back from disk,
     the others run (locally or on Ray); returns the finished cells in the grid's order."""
     evaluation_interval(config.policy.steps, config.evaluations)  # a count it cannot give fails before any work
+    software_render_threads(config.threads)  # before the collections render (a local Ray's workers inherit it)
     finished = {key: read_cell(path) for key in grid if (path := cell_path(config, *key)).exists()}
     finished |= {key: cell for key in grid if key not in finished and (cell := _take_shared(config, *key)) is not None}
     for cell in finished.values():

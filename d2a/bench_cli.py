@@ -51,9 +51,11 @@ def add_cell_reading_options(parser: argparse.ArgumentParser) -> None:
 
 
 def cmd_bench_envs(args: argparse.Namespace) -> None:
-    from benchmarks.envs import EnvBenchConfig, run
+    from benchmarks.envs import EnvBenchConfig, render_thread_comparison, run
 
-    run(replace_given(EnvBenchConfig(), task=args.task, steps=args.steps, seed=args.seed))
+    config = replace_given(EnvBenchConfig(), task=args.task, steps=args.steps, seed=args.seed,
+                           render_rounds=args.render_rounds)
+    (render_thread_comparison if args.render_threads else run)(config)
 
 
 def cmd_bench_experts(args: argparse.Namespace) -> None:
@@ -255,6 +257,11 @@ def add_bench_commands(commands: Any) -> None:
     bench_envs.add_argument("--task", default=None)
     bench_envs.add_argument("--steps", type=POSITIVE, default=None)
     bench_envs.add_argument("--seed", type=NON_NEGATIVE, default=None)
+    bench_envs.add_argument("--render-threads", action="store_true",
+                            help="only compare the software renderer's thread pool with drawing in the calling "
+                                 "thread (LP_NUM_THREADS unset / 0) at the grids' 256 px and 4096 points")
+    bench_envs.add_argument("--render-rounds", type=POSITIVE, default=None,
+                            help="with --render-threads: alternating runs of each setting (default 6)")
     bench_envs.set_defaults(func=cmd_bench_envs)
 
     bench_experts = bench.add_parser("experts", help="expert success per task (Meta-World, Adroit), parallel speed-up")

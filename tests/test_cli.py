@@ -351,3 +351,15 @@ def test_bench_table1_options_and_defaults(monkeypatch):
     assert (budget.policy.policy.num_points, budget.policy.steps) == (128, default.policy.steps)
     cell_path = benchmarks.success.cell_path
     assert cell_path(budget, "push", "mp1", 0) != cell_path(default, "push", "mp1", 0)
+
+
+def test_bench_envs_runs_the_render_thread_comparison_alone_when_asked(monkeypatch):
+    import benchmarks.envs
+
+    seen = {}
+    monkeypatch.setattr(benchmarks.envs, "run", lambda config: seen.setdefault("run", config))
+    monkeypatch.setattr(benchmarks.envs, "render_thread_comparison", lambda config: seen.setdefault("threads", config))
+    main(["bench", "envs", "--render-threads", "--render-rounds", "2", "--task", "push"])
+    assert list(seen) == ["threads"] and (seen["threads"].render_rounds, seen["threads"].task) == (2, "push")
+    main(["bench", "envs"])
+    assert seen["run"].render_rounds == 6

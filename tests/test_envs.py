@@ -387,3 +387,30 @@ def test_a_render_env_left_open_exits_without_gl_errors():
     finished = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert finished.returncode == 0, finished.stderr
     assert "Exception ignored" not in finished.stderr, finished.stderr
+
+
+@requires_render
+def test_a_software_renderer_drawing_in_the_calling_thread_gives_the_same_clouds():
+    """``software_render_threads(1)`` makes llvmpipe draw in the calling thread (LP_NUM_THREADS=0):
+    a speed setting only, so the clouds must equal those of its thread pool, bit for bit."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import gymnasium as gym, numpy as np, sys, d2a_envs\n"
+              "from d2a_envs.gl import software_render_threads\n"
+              "print('LP_NUM_THREADS=' + software_render_threads(1), file=sys.stderr)\n"
+              "env = gym.make('D2A-MetaWorld-Push-v0', backend='render', image_size=96, num_points=512)\n"
+              "clouds = [env.reset(seed=1)[0]['point_cloud']]\n"
+              "clouds += [env.step(env.action_space.sample() * 0 + 0.5)[0]['point_cloud'] for _ in range(5)]\n"
+              "sys.stdout.buffer.write(np.stack(clouds).tobytes())\n")
+    clouds, chosen = [], []
+    for pool in (None, "3"):  # ours, then a user's choice of 3 rasteriser threads, which it keeps
+        env = {key: value for key, value in os.environ.items() if key != "LP_NUM_THREADS"}
+        env |= {"LP_NUM_THREADS": pool} if pool else {}
+        finished = subprocess.run([sys.executable, "-c", script], capture_output=True, env=env, timeout=120)
+        assert finished.returncode == 0, finished.stderr.decode()
+        clouds.append(np.frombuffer(finished.stdout, dtype=np.float32))
+        chosen += [line for line in finished.stderr.decode().splitlines() if line.startswith("LP_NUM_THREADS=")]
+    assert chosen == ["LP_NUM_THREADS=0", "LP_NUM_THREADS=3"]
+    assert clouds[0].size == 6 * 512 * 3 and np.array_equal(clouds[0], clouds[1])

@@ -49,6 +49,7 @@ from d2a_agents.policy.checkpoints import (
 from d2a_agents.policy.perception import Reliance, reliance
 from d2a_agents.world_model.data import WorldModelTransitions
 from d2a_agents.world_model.imagine import Imaginer
+from d2a_envs.gl import software_render_threads
 from d2a_envs.tasks import get_task
 from d2a_envs.wrappers import IMAGE_KEY
 
@@ -394,6 +395,7 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
     call_started = time.perf_counter()  # the checkpoint's wall_seconds: this call's time plus the earlier calls'
     if config.threads:
         torch.set_num_threads(config.threads)
+        software_render_threads(config.threads)  # its evaluations render: before the first GL context
     device = torch.device(config.device)
     dataset = DemoDataset.open_for_training(config.data).demonstrations()  # never the rollouts of a world model
     if dataset.holds_exactly(config.demos):
