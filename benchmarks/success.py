@@ -63,6 +63,7 @@ from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_
 from d2a_agents.checkpoint import load_checkpoint
 from d2a_agents.policy.agent import reads_images, uses_imagination
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, Acting, evaluate_checkpoint
+from d2a_agents.policy.perception import Reliance
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
@@ -505,17 +506,22 @@ def run(config: SuccessBenchConfig = PRESETS["cpu"]) -> list[Cell]:
 
 
 def cells_csv(cells: list[Cell], columns: dict[str, Callable[[Cell], object]] | None = None) -> str:
-    """One CSV row per cell: what it ran, both protocols, its final outcomes and times, then the
-    extra ``columns`` (name: value of a cell)."""
+    """One CSV row per cell: what it ran, both protocols, its final outcomes and times, how much its
+    policy reads its clouds and its second cloud (its last perception check: one-step error with
+    that input shuffled over the intact one; empty where the cell has none), then the extra
+    ``columns`` (name: value of a cell)."""
     columns = columns or {}
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(["task", "algo", "seed", "demos", "paper", "honest", "final_wins", "final_episodes",
-                     "train_seconds", "final_seconds", *columns])
+                     "train_seconds", "final_seconds", "clouds_shuffled_x", "second_cloud_shuffled_x", *columns])
     for cell in cells:
+        check = Reliance.from_record(cell.reliance) if cell.reliance is not None else None
+        ratios = (check.cloud_ratio, check.imagined_ratio) if check is not None else (None, None)
         writer.writerow([cell.task, cell.algo, cell.seed, cell.demos, f"{cell.paper:.4f}", f"{cell.honest:.4f}",
                          cell.final_wins, cell.final_episodes, f"{cell.train_seconds:.0f}",
                          "" if cell.final_seconds is None else f"{cell.final_seconds:.0f}",
+                         *("" if ratio is None else f"{ratio:.2f}" for ratio in ratios),
                          *(value(cell) for value in columns.values())])
     return out.getvalue()
 

@@ -4,6 +4,7 @@ and two processes sharing one grid."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 
@@ -100,11 +101,16 @@ def test_adroit_entries_are_per_task_means_over_seeds(tmp_path, capsys):
 
 
 def test_task_csv_has_one_row_per_cell():
-    cells = [_cell("push", "dp3", 1, 37, periodic=[0.2, 0.5, 0.4])]
-    (row,) = csv.DictReader(io.StringIO(task_csv(cells)))
-    assert row == {"task": "push", "algo": "dp3", "seed": "1", "demos": "10", "paper": "0.3667", "honest": "0.3700",
-                   "final_wins": "37", "final_episodes": "100", "train_seconds": "600", "final_seconds": "300",
-                   "group": "hard"}
+    checked = dataclasses.replace(_cell("push", "d2a", 1, 40), reliance={  # its last perception check
+        "step": 4000, "where": "training", "windows": 512, "intact": 0.02, "clouds_shuffled": 0.5,
+        "state_shuffled": 0.1, "imagined_shuffled": 0.07})
+    cells = [_cell("push", "dp3", 1, 37, periodic=[0.2, 0.5, 0.4]), checked]
+    unchecked, imagining = csv.DictReader(io.StringIO(task_csv(cells)))
+    assert unchecked == {"task": "push", "algo": "dp3", "seed": "1", "demos": "10", "paper": "0.3667",
+                         "honest": "0.3700", "final_wins": "37", "final_episodes": "100", "train_seconds": "600",
+                         "final_seconds": "300", "clouds_shuffled_x": "", "second_cloud_shuffled_x": "",
+                         "group": "hard"}
+    assert (imagining["clouds_shuffled_x"], imagining["second_cloud_shuffled_x"]) == ("25.00", "3.50")  # 0.5 / 0.02
 
 
 def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
