@@ -4,7 +4,8 @@ MuJoCo binds its GL platform (``MUJOCO_GL``) once, at import time. On a headless
 the default (GLFW) cannot open a context, and asking for EGL where ``libEGL`` is missing
 makes ``import mujoco`` itself fail. This module picks a platform that can load, so that
 importing :mod:`d2a_envs` never breaks and the ``render`` backend can explain what to
-install when no GL library is present.
+install when no GL library is present. It also sets how many threads a software renderer
+draws with (:func:`software_render_threads`).
 """
 
 from __future__ import annotations
@@ -61,8 +62,8 @@ def software_render_threads(threads: int) -> str:
 
     A one-thread run draws in its calling thread (``0``) rather than with llvmpipe's default pool
     of one thread per core, whose threads beside other busy runs mostly wait on each other: the
-    clouds are the same to the bit, a step no slower and up to a fifth faster (``d2a bench envs
-    --render-threads``; docs/results.md). Mesa reads the variable when the process's first GL
+    clouds are the same to the bit and a step took 0.82-0.99x the time in three comparisons
+    (``d2a bench envs --render-threads``; docs/results.md). Mesa reads the variable when the process's first GL
     context is made, so call this before anything renders. Returns the value in force.
     """
     if threads < 1:
