@@ -7,7 +7,7 @@ from importlib.metadata import entry_points
 
 import gymnasium as gym
 
-from d2a_envs.defaults import SUITE_DEFAULTS
+from d2a_envs.defaults import default_config
 from d2a_envs.sampling import CropBox
 from d2a_envs.suites.adroit import AdroitEnv
 from d2a_envs.suites.base import SuiteEnv
@@ -65,7 +65,7 @@ def make_env(
     """
     if suite not in _SUITE_ENVS:
         raise ValueError(f"unknown suite {suite!r}; choose one of {sorted(_SUITE_ENVS)}")
-    config = SUITE_DEFAULTS[suite].updated(
+    config = default_config(suite, task).updated(
         cameras=cameras, image_size=image_size, num_points=num_points,
         crop_box=crop_box, backend=backend, with_rgb=with_rgb, show_sites=show_sites,
     )

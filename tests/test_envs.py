@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
@@ -105,6 +106,30 @@ def test_points_respect_a_custom_crop_box_and_fill_by_resampling():
     assert 0 < info["num_points_in_crop"] < 2048
     assert len(np.unique(cloud, axis=0)) == info["num_points_in_crop"]  # repeats, never invented points
 
+
+
+def _table_top_under(sim, xy: np.ndarray) -> float:
+    """The top of the table's box geoms under ``xy``, read from the MuJoCo model (not the crop code)."""
+    model, data = sim.model, sim.data
+    table = model.body("tablelink").id
+    tops = [data.geom_xpos[g][2] + model.geom_size[g][2] for g in range(model.ngeom)
+            if model.geom_bodyid[g] == table and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX
+            and np.all(np.abs(xy - data.geom_xpos[g][:2]) <= model.geom_size[g][:2])]
+    return max(tops)
+
+
+@pytest.mark.parametrize("task", ["push", "hand-insert", "sweep-into"])
+def test_the_crop_floor_is_5_mm_above_the_table_top_under_the_object(task):
+    """Hand-Insert and Sweep-Into stand on a table top at z = 5 cm: a floor at 5 mm kept that
+    top, about 80 % of the points, and left the block none of 128."""
+    env = make(task)
+    observation, _ = env.reset(seed=0)
+    floor = env.get_wrapper_attr("config").crop_box.low[2]
+    assert floor == pytest.approx(_table_top_under(env.unwrapped._sim, observation["state"][4:6]) + 0.005)
+    cloud = observation["point_cloud"]
+    assert (cloud[:, 2] < floor + 0.01).mean() < 0.2
+    assert (np.linalg.norm(cloud - observation["state"][4:7], axis=1) < 0.04).sum() >= 5
+    env.close()
 
 def test_rgb_points():
     env = make("hammer", with_rgb=True, **SMALL)

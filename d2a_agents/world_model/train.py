@@ -11,7 +11,6 @@ the tasks and the env kwargs; re-running the same command resumes from the last 
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -120,11 +119,14 @@ def dataset_crop_box(dataset: DemoDataset) -> CropBox:
     suites = {get_task(task).suite for task in dataset.metadata.tasks}
     if len(suites) != 1:
         raise ValueError(f"tasks of several suites {sorted(suites)} cannot share one voxel grid")
-    boxes = {json.dumps(kwargs.get("crop_box")) for kwargs in dataset.metadata.tasks.values()}
+    boxes = set()
+    for task, kwargs in dataset.metadata.tasks.items():
+        spec = get_task(task)
+        box = kwargs.get("crop_box")
+        boxes.add(CropBox.from_any(box) if box is not None else d2a_envs.default_config(spec.suite, spec.task).crop_box)
     if len(boxes) != 1:
-        raise ValueError("the tasks of this data set use different crop boxes")
-    box = next(iter(dataset.metadata.tasks.values())).get("crop_box")
-    return CropBox.from_any(box) if box is not None else d2a_envs.SUITE_DEFAULTS[suites.pop()].crop_box
+        raise ValueError(f"the tasks of this data set use different crop boxes: {sorted(map(str, boxes))}")
+    return boxes.pop()
 
 
 CANDIDATE_THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9)
