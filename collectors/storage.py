@@ -25,11 +25,13 @@ from importlib import metadata as package_metadata
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 
 from collectors.atomic import atomic_write_text, holds_only_lock, is_lock_file
+from d2a_envs.factory import env_crop_box
 from d2a_envs.wrappers import IMAGE_KEY
 
 # A rollout's expert action where the executed ``action`` was perturbed (DART noise): the label stored.
@@ -43,6 +45,8 @@ BUFFER_DIR = "buffer"
 FRAME_KEYS = ("point_cloud", "agent_pos", "state", "action", "reward", "success", "episode", "step")
 # Stored where the env had them (``rgb_image_size``): in every row of a data set, or in none.
 OPTIONAL_FRAME_KEYS = (IMAGE_KEY,)
+# Stored clouds are float32: a point on the box's face may round a little past it.
+_BOX_TOLERANCE = 1e-3
 VERSIONED_PACKAGES = ("d2a", "metaworld", "mujoco", "gymnasium", "gymnasium-robotics", "torch", "torchrl", "tensordict")
 
 
@@ -242,6 +246,7 @@ class DemoDataset:
         if not dataset.metadata.episodes:
             raise DatasetError(f"{directory} holds no episodes (did every collection attempt fail?)")
         dataset.check_finite()
+        dataset.check_crop_boxes()
         return dataset
 
     def episode_counts(self) -> dict[str, int]:
@@ -366,6 +371,29 @@ class DemoDataset:
                 episode = int(frames["episode"][first])
                 raise DatasetError(f"{self.directory}: {key} holds non-finite values in {int(bad.sum())} steps "
                                    f"(first: episode {episode}, step {int(frames['step'][first])}); collect it again")
+
+    def check_crop_boxes(self) -> None:
+        """Refuse collected clouds that leave the box their task's env crops to now.
+
+        A collection here keeps only points inside its env's box, so points outside it mean the
+        clouds came from another box (an older default): a policy would train on clouds that its
+        evaluations never show. Imported and recorded episodes (collection seed -1) are not checked.
+        """
+        frames = self.frames()
+        for task, env_kwargs in self.metadata.tasks.items():
+            starts = [e.start for e in self.metadata.episodes
+                      if e.task == task and self.metadata.collections[e.collection].seed >= 0]
+            if not starts:
+                continue
+            box = env_crop_box(task, env_kwargs)
+            points = frames["point_cloud"][torch.tensor(starts)][..., :3].reshape(-1, 3).numpy()
+            low, high = np.array(box.low) - _BOX_TOLERANCE, np.array(box.high) + _BOX_TOLERANCE
+            outside = ~np.all((points >= low) & (points <= high), axis=1)
+            if outside.any():
+                raise DatasetError(
+                    f"{self.directory}: {int(outside.sum())} points of {task}'s first frames lie outside the box its "
+                    f"env crops to now (low={box.low}, high={box.high}): the clouds were collected with another "
+                    "box; collect them again (or pass the old box as crop_box)")
 
     def episode(self, index: int) -> TensorDict:
         """The steps of stored episode ``index``."""

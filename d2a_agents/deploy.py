@@ -125,10 +125,9 @@ class DeploymentLoop:
                              "robot has not got (a d2a policy imagines it with its world model)")
         task = payload["tasks"][0]
         env_kwargs = payload["env_kwargs"][task]
-        spec = d2a_envs.get_task(task)
-        suite = d2a_envs.default_config(spec.suite, spec.task)
-        self.crop_box = crop_box or CropBox.from_any(env_kwargs.get("crop_box") or suite.crop_box)
-        self.num_points = num_points or env_kwargs.get("num_points") or suite.num_points
+        self.crop_box = crop_box or d2a_envs.env_crop_box(task, env_kwargs)
+        self.num_points = num_points or env_kwargs.get("num_points") or d2a_envs.SUITE_DEFAULTS[
+            d2a_envs.get_task(task).suite].num_points
         self.cameras, self.robot, self.period, self.pixel_stride = cameras, robot, 1.0 / hz, pixel_stride
         self.clock, self.sleep = clock, sleep
         self.rng = np.random.default_rng(seed)

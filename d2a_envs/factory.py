@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from importlib.metadata import entry_points
+from typing import Any
 
 import gymnasium as gym
 
@@ -28,6 +29,17 @@ def plugin_wrapper(name: str) -> Callable[..., gym.Env]:
                           f"{WRAPPER_ENTRY_POINTS!r}); install d2a with its agents (pip install -e .)")
     return found[0].load()
 
+
+
+def env_crop_box(name: str, env_kwargs: Mapping[str, Any]) -> CropBox:
+    """The box that task ``name``'s env made with ``env_kwargs`` crops to: theirs, or the task's default."""
+    from d2a_envs.tasks import get_task
+
+    box = env_kwargs.get("crop_box")
+    if box is not None:
+        return CropBox.from_any(box)
+    spec = get_task(name)
+    return default_config(spec.suite, spec.task).crop_box
 
 def make_env(
     suite: str,

@@ -8,6 +8,7 @@ compares the data set's bytes before and after.
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 from pathlib import Path
 
@@ -82,6 +83,23 @@ def test_non_finite_clouds_are_refused_before_training(damaged, capsys, tmp_path
         assert all(is_lock_file(p) for p in written), written  # nothing trained, nothing saved
     assert fingerprint(damaged) == before
 
+
+
+def test_clouds_from_another_box_are_refused_before_training(damaged, capsys, tmp_path):
+    """Points below Reach's table top are what a box with a lower floor (an older default) kept."""
+    DemoDataset.open(damaged).frames()["point_cloud"][0, :5, 2] = -0.02  # episode 0's first frame
+    for command in (["train-policy", "--algo", "mp1"], ["train-wm"]):
+        fails_with([*command, "--data", str(damaged), "--out", str(tmp_path / command[0] / "run")], capsys,
+                   "5 points of reach", "outside the box", "collect them again")
+    metadata = json.loads((damaged / METADATA_FILE).read_text())
+    metadata["tasks"]["reach"]["crop_box"] = [[-0.6, 0.25, -0.05], [0.6, 0.97, 0.7]]  # the box they came from
+    (damaged / METADATA_FILE).write_text(json.dumps(metadata))
+    DemoDataset.open_for_training(damaged)
+    metadata["tasks"]["reach"].pop("crop_box")
+    for collection in metadata["collections"]:
+        collection["seed"] = -1  # imported: their box is the source's, not checked
+    (damaged / METADATA_FILE).write_text(json.dumps(metadata))
+    DemoDataset.open_for_training(damaged)
 
 def test_a_data_set_without_episodes_is_refused_for_training(tmp_path):
     empty = DemoDataset.create(tmp_path / "empty", capacity=10)

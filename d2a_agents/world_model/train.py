@@ -119,11 +119,7 @@ def dataset_crop_box(dataset: DemoDataset) -> CropBox:
     suites = {get_task(task).suite for task in dataset.metadata.tasks}
     if len(suites) != 1:
         raise ValueError(f"tasks of several suites {sorted(suites)} cannot share one voxel grid")
-    boxes = set()
-    for task, kwargs in dataset.metadata.tasks.items():
-        spec = get_task(task)
-        box = kwargs.get("crop_box")
-        boxes.add(CropBox.from_any(box) if box is not None else d2a_envs.default_config(spec.suite, spec.task).crop_box)
+    boxes = {d2a_envs.env_crop_box(task, kwargs) for task, kwargs in dataset.metadata.tasks.items()}
     if len(boxes) != 1:
         raise ValueError(f"the tasks of this data set use different crop boxes: {sorted(map(str, boxes))}")
     return boxes.pop()
