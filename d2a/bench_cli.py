@@ -16,6 +16,7 @@ from d2a.cli_options import (
     add_eval_layouts_option,
     add_policy_options,
     add_ray_option,
+    parse_box,
     replace_given,
     with_policy_options,
 )
@@ -137,6 +138,13 @@ def cmd_bench_fusion(args: argparse.Namespace) -> None:
 
     run(replace_given(FusionBenchConfig(), repeats=args.repeats))
 
+
+
+def cmd_bench_points(args: argparse.Namespace) -> None:
+    from benchmarks.point_budget import PointBudgetConfig, run
+
+    run(replace_given(PointBudgetConfig(), tasks=tuple(args.task) if args.task else None, points=args.points,
+                      layouts=args.layouts, backend=args.backend, crop_box=args.crop_box))
 
 def cmd_bench_change(args: argparse.Namespace) -> None:
     from benchmarks.change import ChangeBenchConfig, run
@@ -353,6 +361,18 @@ def add_bench_commands(commands: Any) -> None:
     bench_wm.add_argument("--backend", choices=("raycast", "render"), default=None, help="depth backend")
     bench_wm.add_argument("--workdir", default=None)
     bench_wm.set_defaults(func=cmd_bench_wm)
+
+    bench_points = bench.add_parser("points", help="where a task's point budget goes: the object's points among the "
+                                                   "N a policy reads, and a flat surface that takes the rest")
+    bench_points.add_argument("--task", action="append", default=None,
+                              help="repeatable; default: the Meta-World tasks of Table I")
+    bench_points.add_argument("--points", type=POSITIVE, default=None, help="points the policy reads (default 128)")
+    bench_points.add_argument("--layouts", type=POSITIVE, default=None, help="new layouts per task (default 5)")
+    bench_points.add_argument("--backend", choices=("raycast", "render"), default=None,
+                              help="depth backend (default render, as the grids)")
+    bench_points.add_argument("--crop-box", type=parse_box, default=None,
+                              help="x0,y0,z0,x1,y1,z1 in metres (default: each task's own box)")
+    bench_points.set_defaults(func=cmd_bench_points)
 
     bench_fusion = bench.add_parser("fusion", help="two 640x480 depth frames fused to 1024 points: ms on one thread")
     bench_fusion.add_argument("--repeats", type=POSITIVE, default=None)

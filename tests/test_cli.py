@@ -363,3 +363,15 @@ def test_bench_envs_runs_the_render_thread_comparison_alone_when_asked(monkeypat
     assert list(seen) == ["threads"] and (seen["threads"].render_rounds, seen["threads"].task) == (2, "push")
     main(["bench", "envs"])
     assert seen["run"].render_rounds == 6
+
+
+def test_bench_points_passes_its_options_through(monkeypatch):
+    import benchmarks.point_budget
+
+    seen = {}
+    monkeypatch.setattr(benchmarks.point_budget, "run", lambda config: seen.setdefault("run", config))
+    main(["bench", "points", "--task", "hand-insert", "--task", "push", "--points", "64", "--layouts", "2",
+          "--crop-box=-0.6,0.25,0.005,0.6,0.97,0.7"])
+    config = seen["run"]
+    assert (config.tasks, config.points, config.layouts) == (("hand-insert", "push"), 64, 2)
+    assert config.crop_box == ((-0.6, 0.25, 0.005), (0.6, 0.97, 0.7)) and config.backend == "render"
