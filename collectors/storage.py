@@ -393,7 +393,7 @@ class DemoDataset:
                 raise DatasetError(
                     f"{self.directory}: {int(outside.sum())} points of {task}'s first frames lie outside the box its "
                     f"env crops to now (low={box.low}, high={box.high}): the clouds were collected with another "
-                    "box; collect them again (or pass the old box as crop_box)")
+                    "box; collect them again")
 
     def episode(self, index: int) -> TensorDict:
         """The steps of stored episode ``index``."""

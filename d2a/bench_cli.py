@@ -139,12 +139,12 @@ def cmd_bench_fusion(args: argparse.Namespace) -> None:
     run(replace_given(FusionBenchConfig(), repeats=args.repeats))
 
 
-
 def cmd_bench_points(args: argparse.Namespace) -> None:
     from benchmarks.point_budget import PointBudgetConfig, run
 
     run(replace_given(PointBudgetConfig(), tasks=tuple(args.task) if args.task else None, points=args.points,
                       layouts=args.layouts, backend=args.backend, crop_box=args.crop_box))
+
 
 def cmd_bench_change(args: argparse.Namespace) -> None:
     from benchmarks.change import ChangeBenchConfig, run
