@@ -84,8 +84,7 @@ def cmd_data_import(args: argparse.Namespace) -> None:
 
         if args.task is None:
             raise ValueError("--lerobot needs --task: the task its episodes show")
-        spec = d2a_envs.get_task(args.task)
-        suite = d2a_envs.default_config(spec.suite, spec.task)
+        suite = d2a_envs.task_config(args.task)
         dataset = import_lerobot(
             args.lerobot, args.out, args.task, cloud_key=args.cloud_key, depth_key=args.depth_key, camera=args.camera,
             depth_scale=args.depth_scale, crop_box=args.crop_box or suite.crop_box,
@@ -98,8 +97,7 @@ def cmd_data_import(args: argparse.Namespace) -> None:
         from collectors.recording import import_recording
 
         task = json.loads((Path(args.recording) / "recording.json").read_text())["task"]
-        spec = d2a_envs.get_task(task)
-        suite = d2a_envs.default_config(spec.suite, spec.task)
+        suite = d2a_envs.task_config(task)
         dataset = import_recording(args.recording, args.out, crop_box=args.crop_box or suite.crop_box,
                                    num_points=args.num_points or suite.num_points, overwrite=args.overwrite)
     print(describe(dataset))

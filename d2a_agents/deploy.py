@@ -126,8 +126,7 @@ class DeploymentLoop:
         task = payload["tasks"][0]
         env_kwargs = payload["env_kwargs"][task]
         self.crop_box = crop_box or d2a_envs.env_crop_box(task, env_kwargs)
-        self.num_points = num_points or env_kwargs.get("num_points") or d2a_envs.SUITE_DEFAULTS[
-            d2a_envs.get_task(task).suite].num_points
+        self.num_points = num_points or env_kwargs.get("num_points") or d2a_envs.task_config(task).num_points
         self.cameras, self.robot, self.period, self.pixel_stride = cameras, robot, 1.0 / hz, pixel_stride
         self.clock, self.sleep = clock, sleep
         self.rng = np.random.default_rng(seed)

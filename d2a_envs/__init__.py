@@ -15,7 +15,7 @@ from d2a_envs.gl import configure_mujoco_gl
 configure_mujoco_gl()  # before anything imports mujoco
 
 from d2a_envs.defaults import DEFAULT_MAX_EPISODE_STEPS, SUITE_DEFAULTS, default_config  # noqa: E402
-from d2a_envs.factory import env_crop_box, make_env  # noqa: E402
+from d2a_envs.factory import env_crop_box, make_env, task_config  # noqa: E402
 from d2a_envs.registration import register_all  # noqa: E402
 from d2a_envs.sampling import CropBox  # noqa: E402
 from d2a_envs.sensor import PointCloudConfig, PointCloudSensor  # noqa: E402
@@ -28,5 +28,5 @@ __all__ = [
     "CropBox", "DEFAULT_MAX_EPISODE_STEPS", "PointCloudConfig",
     "PointCloudObservation", "PointCloudSensor", "SUITE_DEFAULTS", "TASKS", "TaskSpec", "default_config",
     "env_crop_box", "get_task", "list_tasks",
-    "make_env",
+    "make_env", "task_config",
 ]

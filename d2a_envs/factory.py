@@ -10,6 +10,7 @@ import gymnasium as gym
 
 from d2a_envs.defaults import default_config
 from d2a_envs.sampling import CropBox
+from d2a_envs.sensor import PointCloudConfig
 from d2a_envs.suites.adroit import AdroitEnv
 from d2a_envs.suites.base import SuiteEnv
 from d2a_envs.suites.metaworld import MetaWorldEnv
@@ -30,16 +31,19 @@ def plugin_wrapper(name: str) -> Callable[..., gym.Env]:
     return found[0].load()
 
 
+def task_config(name: str) -> PointCloudConfig:
+    """The point-cloud defaults of the task ``name`` (``hand-insert``, ``adroit-door``)."""
+    from d2a_envs.tasks import get_task
+
+    spec = get_task(name)
+    return default_config(spec.suite, spec.task)
+
 
 def env_crop_box(name: str, env_kwargs: Mapping[str, Any]) -> CropBox:
     """The box that task ``name``'s env made with ``env_kwargs`` crops to: theirs, or the task's default."""
-    from d2a_envs.tasks import get_task
-
     box = env_kwargs.get("crop_box")
-    if box is not None:
-        return CropBox.from_any(box)
-    spec = get_task(name)
-    return default_config(spec.suite, spec.task).crop_box
+    return CropBox.from_any(box) if box is not None else task_config(name).crop_box
+
 
 def make_env(
     suite: str,
