@@ -106,7 +106,7 @@ def import_dp3(
 def export_dp3(dataset_dir: str | Path, path: str | Path, overwrite: bool = False) -> Path:
     """Write a data set here as a DP3 / MP1 zarr (format 2) at ``path``; returns ``path``."""
     zarr = _zarr()
-    dataset = DemoDataset.open_for_training(dataset_dir)
+    dataset = DemoDataset.open_for_training(dataset_dir, current_crop=False)  # the clouds as collected
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")

@@ -240,13 +240,16 @@ class DemoDataset:
         return dataset
 
     @classmethod
-    def open_for_training(cls, directory: str | Path) -> DemoDataset:
-        """Open a data set a trainer can use: at least one episode, every value finite."""
+    def open_for_training(cls, directory: str | Path, *, current_crop: bool = True) -> DemoDataset:
+        """Open a data set a trainer can use: at least one episode, every value finite and, with
+        ``current_crop``, collected clouds inside the boxes their envs crop to now (an export,
+        which carries the clouds as they were collected, passes ``False``)."""
         dataset = cls.open(directory)
         if not dataset.metadata.episodes:
             raise DatasetError(f"{directory} holds no episodes (did every collection attempt fail?)")
         dataset.check_finite()
-        dataset.check_crop_boxes()
+        if current_crop:
+            dataset.check_crop_boxes()
         return dataset
 
     def episode_counts(self) -> dict[str, int]:

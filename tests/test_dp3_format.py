@@ -4,6 +4,7 @@ writes one, and a round trip through a data set collected here."""
 from __future__ import annotations
 
 import dataclasses
+import shutil
 
 import numpy as np
 import pytest
@@ -97,6 +98,19 @@ def test_export_then_import_round_trips_a_collected_data_set(reach_data, tmp_pat
         assert torch.equal(again.frames()[key], original.frames()[key].float())
     # The collected set's env options come back with the given ones, so evaluation rebuilds its env.
     assert again.metadata.tasks["reach"] == {"image_size": 48, "num_points": 128}
+
+
+def test_export_writes_clouds_that_training_refuses_for_their_older_box(reach_data, tmp_path):
+    """A box check guards training, not the data: clouds cropped by an older box (points below
+    Reach's table top) are refused for training and exported as they were collected."""
+    copy = tmp_path / "reach"
+    shutil.copytree(reach_data, copy)
+    DemoDataset.open(copy).frames()["point_cloud"][0, :5, 2] = -0.02  # a memory map: on disk
+    with pytest.raises(DatasetError, match="outside the box"):
+        DemoDataset.open_for_training(copy)
+    export_dp3(copy, tmp_path / "reach.zarr")
+    exported = zarr.open_group(str(tmp_path / "reach.zarr"), mode="r")["data/point_cloud"]
+    np.testing.assert_array_equal(exported[0, :5, 2], np.full(5, -0.02, dtype=np.float32))
 
 
 def test_a_policy_trains_on_an_imported_data_set(tmp_path):
