@@ -532,14 +532,23 @@ def thread_hours(cells: list[Cell]) -> float:
     return sum(cell.train_seconds + (cell.final_seconds or 0.0) for cell in cells) / 3600
 
 
-def progress_line(cells: list[Cell], total: int) -> str:
-    """How many of ``total`` cells are finished, their one-thread hours and the rest's at their mean rate."""
+def progress_line(cells: list[Cell], unfinished: list[str]) -> str:
+    """How many cells are finished and their one-thread hours; then the ``unfinished`` cells
+    (one method name each) at their method's mean rate so far, or every finished cell's where
+    the method has none yet: a `d2a` cell (world model, imagination at every step) costs
+    several `dp3` cells."""
     hours = thread_hours(cells)
-    rest = total - len(cells)
-    estimate = (f"; the other {rest} at their mean rate: about {hours / len(cells) * rest:.1f} more"
-                if cells and rest else "")
-    return (f"{len(cells)} of {total} cells finished, {hours:.1f} one-thread hours (wall time of one thread per "
-            f"cell; beside other runs it exceeds the CPU time){estimate}")
+    done = (f"{len(cells)} of {len(cells) + len(unfinished)} cells finished, {hours:.1f} one-thread hours (wall "
+            "time of one thread per cell; beside other runs it exceeds the CPU time)")
+    if not cells or not unfinished:
+        return done
+    rates = []
+    for algo in dict.fromkeys(unfinished):
+        measured = [cell for cell in cells if cell.algo == algo] or cells
+        rates.append((algo, unfinished.count(algo), thread_hours(measured) / len(measured)))
+    parts = ", ".join(f"{count} `{algo}` x {rate:.2f} h" for algo, count, rate in rates)
+    return f"{done}; the other {len(unfinished)} at their method's mean rate: about " \
+           f"{sum(count * rate for _, count, rate in rates):.1f} more ({parts})"
 
 
 @dataclass(frozen=True)

@@ -206,7 +206,10 @@ def run(config: Table4Config = Table4Config(), report_only: bool = False) -> lis
     cells = finished_cells(reported(config))
     counts = tuple(sorted({cell.demos for cell in cells} | set(config.demos)))
     print(write_report(cells, dataclasses.replace(config, demos=counts)))  # its methods first, then any other
-    planned = set(plan(config))
+    grid = plan(config)
+    planned = set(grid)
     in_grid = [cell for cell in cells if (cell.demos, cell.task, cell.algo, cell.seed) in planned]
-    print("\n" + progress_line(in_grid, len(planned)))
+    finished = {(cell.demos, cell.task, cell.algo, cell.seed) for cell in in_grid}
+    print("\n" + progress_line(in_grid, [algo for demos, task, algo, seed in grid
+                                         if (demos, task, algo, seed) not in finished]))
     return in_grid

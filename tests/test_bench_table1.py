@@ -113,6 +113,19 @@ def test_task_csv_has_one_row_per_cell():
     assert (imagining["clouds_shuffled_x"], imagining["second_cloud_shuffled_x"]) == ("25.00", "3.50")  # 0.5 / 0.02
 
 
+def test_progress_estimates_each_unfinished_cell_at_its_methods_rate():
+    """dp3 cells took 0.25 h, the d2a cell 1 h: two d2a cells and one dp3 cost 2.25 h; mp1,
+    with no finished cell, counts at the mean of all three (1.5 h / 3 = 0.5 h)."""
+    slow = dataclasses.replace(_cell("push", "d2a", 0, 50), train_seconds=3000.0, final_seconds=600.0)
+    cells = [_cell("push", "dp3", 0, 50), _cell("push", "dp3", 1, 50), slow]
+    line = success.progress_line(cells, ["d2a", "dp3", "mp1", "d2a"])
+    assert line.startswith("3 of 7 cells finished, 1.5 one-thread hours")
+    assert "the other 4 at their method's mean rate: about 2.8 more" in line  # 2 x 1 + 0.25 + 0.5 = 2.75
+    assert "(2 `d2a` x 1.00 h, 1 `dp3` x 0.25 h, 1 `mp1` x 0.50 h)" in line
+    finished = success.progress_line(cells, [])
+    assert finished.startswith("3 of 3 cells finished, 1.5 one-thread hours") and "mean rate" not in finished
+
+
 def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
     config = Table1Config(groups=("very_hard",), algos=("mp1",), seeds=(0,), results=str(tmp_path))
     for task in VERY_HARD[:4]:
@@ -120,7 +133,8 @@ def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
     main(["bench", "table1", "--group", "very_hard", "--algo", "mp1", "--seed", "0", "--results", str(tmp_path),
           "--report"])
     out = capsys.readouterr().out
-    assert "4 of 5 cells finished, 1.0 one-thread hours" in out and "the other 1 at their mean rate: about 0.2" in out
+    assert "4 of 5 cells finished, 1.0 one-thread hours" in out
+    assert "the other 1 at their method's mean rate: about 0.2 more (1 `mp1` x 0.25 h)" in out
     assert "50.0 over 4/5 tasks" in (tmp_path / "table1.md").read_text()
     assert len((tmp_path / "tasks.csv").read_text().splitlines()) == 5
     assert not (tmp_path / "table1.png").exists()  # no complete seed to draw yet
