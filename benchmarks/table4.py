@@ -102,8 +102,9 @@ def report(cells: list[Cell], config: Table4Config) -> str:
         f"task; {bench.policy.steps} steps x batch {bench.policy.batch_size}, {bench.policy.policy.num_points} "
         f"points per cloud. Paper protocol: mean of the best 5 of {bench.evaluations} evaluations of "
         f"{bench.eval_episodes} episodes; honest: the final checkpoint on {bench.final_episodes} new layouts per "
-        f"seed, pooled over seeds. Each entry: {' / '.join(f'`{algo}`' for algo in algos)} (seeds), then the "
-        "paper's MP1 / Ours; - : not measured.",
+        f"seed, pooled over seeds. Each entry: {' / '.join(f'`{algo}`' for algo in algos)} (seeds: one count "
+        "where every measured method has as many, else each method's), then the paper's MP1 / Ours; - : not "
+        "measured.",
     ]
     for protocol in ("honest", "paper"):
         lines += ["", f"{protocol.capitalize()} protocol:", "", "| demos | " + " | ".join(config.tasks) + " |",
@@ -112,13 +113,21 @@ def report(cells: list[Cell], config: Table4Config) -> str:
             entries = []
             for task in config.tasks:
                 figures = [rows.get((demos, task, algo)) for algo in algos]
-                seeds = max((len(row.seeds) for row in figures if row), default=0)
                 measured = (" / ".join("-" if row is None else f"{100 * getattr(row, protocol):.0f}" for row in figures)
-                            + f" ({seeds})") if seeds else "-"
+                            + f" ({_seed_counts(figures)})") if any(figures) else "-"
                 paper = PAPER_TABLE4.get(demos, {}).get(task)
                 entries.append(measured + (f" [paper {paper[0]} / {paper[1]}]" if paper else ""))
             lines.append(f"| {demos} | " + " | ".join(entries) + " |")
     return "\n".join([*lines, *grid_note(cells)])
+
+
+def _seed_counts(figures: list[Summary | None]) -> str:
+    """The seeds behind an entry's figures: one count when every measured method has as many,
+    else each method's (``-`` where it has none)."""
+    counts = [len(row.seeds) for row in figures if row]
+    if len(set(counts)) == 1:
+        return str(counts[0])
+    return " / ".join("-" if row is None else str(len(row.seeds)) for row in figures)
 
 
 def detail_table(cells: list[Cell]) -> str:

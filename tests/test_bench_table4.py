@@ -35,11 +35,11 @@ def test_report_in_the_papers_layout_keeps_counts_apart():
              _cell("push", "d2a", 0, 5, 50), _cell("push", "mp1", 0, 10, 90)]
     text = report(cells, Table4Config(algos=("mp1", "d2a", "d2a-present")))
     lever, assembly, push, stick = _row(text, "honest", 5)
-    # Honest: mp1 pools 70 wins of 200 episodes; d2a one seed; d2a-present none; 2 seeds at most.
-    assert push == "35 / 50 / - (2) [paper 32 / 50]"
+    # Honest: mp1 pools 70 wins of 200 episodes over 2 seeds; d2a one seed; d2a-present none.
+    assert push == "35 / 50 / - (2 / 1 / -) [paper 32 / 50]"
     assert lever == "- [paper 19 / 30]"
     # Paper protocol: mp1 seeds average (0.35 + 0.2) / 2 = 27.5 (rounded to 28).
-    assert _row(text, "paper", 5)[2] == "28 / 50 / - (2) [paper 32 / 50]"
+    assert _row(text, "paper", 5)[2] == "28 / 50 / - (2 / 1 / -) [paper 32 / 50]"
     assert _row(text, "honest", 10)[2] == "90 / - / - (1) [paper 74 / 85]"
     assert _row(text, "honest", 1)[2] == "- [paper 9 / 17]"
 
