@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import d2a_envs
-from benchmarks.paired import grid_note
+from benchmarks.paired import grid_note, pair_cells, summary_sentence
 from benchmarks.success import (
     Cell,
     SuccessBenchConfig,
@@ -228,8 +228,20 @@ def report(cells: list[Cell], config: Table1Config) -> str:
     for method, values in PAPER_TABLE1.items():
         entries = [f"{values[key]:g}" for key in (*GROUPS[::-1], *ADROIT_COLUMNS)]
         lines.append(f"| {method} (paper) | paper | " + " | ".join(entries) + " |")
-    lines += ["", ADROIT_NOTE, *grid_note(cells)]
+    lines += ["", ADROIT_NOTE, *grid_note(cells), *paired_by_group(cells)]
     return "\n".join(lines)
+
+
+def paired_by_group(cells: list[Cell]) -> list[str]:
+    """Per group, `d2a` against its control and against `mp1` cell by cell: where the paper
+    claims imagination helps (most on Very Hard), the grid's answer group by group."""
+    lines = []
+    for group in TABLE1_GROUPS:
+        tasks = set(group_tasks(group))
+        in_group = [cell for cell in cells if cell.task in tasks]
+        lines += [f"- {GROUP_TITLES[group]}: {summary_sentence(pairs, 'd2a', reference)}"
+                  for reference in ("d2a-present", "mp1") if (pairs := pair_cells(in_group, "d2a", reference))]
+    return ["", "Per group (`d2a bench paired --task ...` with the group's tasks):", "", *lines] if lines else []
 
 
 def _adroit_title(task: str) -> str:

@@ -12,7 +12,7 @@ import pytest
 
 import benchmarks.success as success
 from benchmarks.success import Cell, SuccessBenchConfig
-from benchmarks.table1 import Table1Config, group_tasks, plan, report, run, task_csv
+from benchmarks.table1 import Table1Config, group_tasks, paired_by_group, plan, report, run, task_csv
 from collectors.atomic import exclusive_writer
 from d2a.cli import main
 
@@ -124,6 +124,21 @@ def test_progress_estimates_each_unfinished_cell_at_its_methods_rate():
     assert "(2 `d2a` x 1.00 h, 1 `dp3` x 0.25 h, 1 `mp1` x 0.50 h)" in line
     finished = success.progress_line(cells, [])
     assert finished.startswith("3 of 3 cells finished, 1.5 one-thread hours") and "mean rate" not in finished
+
+
+def test_pairs_are_summarised_group_by_group_against_the_control_and_mp1():
+    cells = [_cell("disassemble", "d2a", 0, 70), _cell("disassemble", "d2a-present", 0, 60),
+             _cell("disassemble", "mp1", 0, 80), _cell("stick-push", "d2a", 0, 50),
+             _cell("stick-push", "d2a-present", 0, 50), _cell("button-press", "d2a", 0, 90),
+             _cell("button-press", "mp1", 0, 100), _cell("push", "mp1", 0, 40)]  # Hard: no d2a, no line
+    lines = [line for line in paired_by_group(cells) if line.startswith("- ")]
+    assert [line.split(":")[0] for line in lines] == ["- Very Hard", "- Very Hard", "- Easy"]
+    # Very Hard against the control: +10 and 0 points, mean +5; against mp1 one pair, -10.
+    assert "2 pairs of `d2a` and `d2a-present`: `d2a` ahead in 1, level in 1, behind in 0; mean difference +5.0" \
+        in lines[0]
+    assert "1 pair of `d2a` and `mp1`: `d2a` ahead in 0, level in 0, behind in 1; mean difference -10.0" in lines[1]
+    assert "1 pair of `d2a` and `mp1`" in lines[2] and "pooled episodes 90.0 % against 100.0 %" in lines[2]
+    assert paired_by_group([_cell("push", "mp1", 0, 40)]) == []
 
 
 def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
