@@ -47,6 +47,7 @@ import json
 import re
 import statistics
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -532,22 +533,23 @@ def thread_hours(cells: list[Cell]) -> float:
     return sum(cell.train_seconds + (cell.final_seconds or 0.0) for cell in cells) / 3600
 
 
-def progress_line(cells: list[Cell], unfinished: list[str]) -> str:
-    """How many cells are finished and their one-thread hours; then the ``unfinished`` cells
-    (one method name each) at their method's mean rate so far, or every finished cell's where
-    the method has none yet: a `d2a` cell (world model, imagination at every step) costs
-    several `dp3` cells."""
+def progress_line(cells: list[Cell], planned: list[str]) -> str:
+    """How many of the grid's cells (``planned``: one method name per planned cell, ``cells``:
+    the finished ones among them) are finished and their one-thread hours; then the unfinished
+    ones at their method's mean rate so far, or every finished cell's where the method has none
+    yet: a `d2a` cell (world model, imagination at every step) costs several `dp3` cells."""
     hours = thread_hours(cells)
-    done = (f"{len(cells)} of {len(cells) + len(unfinished)} cells finished, {hours:.1f} one-thread hours (wall "
-            "time of one thread per cell; beside other runs it exceeds the CPU time)")
+    unfinished = Counter(planned) - Counter(cell.algo for cell in cells)
+    done = (f"{len(cells)} of {len(planned)} cells finished, {hours:.1f} one-thread hours (wall time of one "
+            "thread per cell; beside other runs it exceeds the CPU time)")
     if not cells or not unfinished:
         return done
     rates = []
-    for algo in dict.fromkeys(unfinished):
+    for algo, count in unfinished.items():
         measured = [cell for cell in cells if cell.algo == algo] or cells
-        rates.append((algo, unfinished.count(algo), thread_hours(measured) / len(measured)))
+        rates.append((algo, count, thread_hours(measured) / len(measured)))
     parts = ", ".join(f"{count} `{algo}` x {rate:.2f} h" for algo, count, rate in rates)
-    return f"{done}; the other {len(unfinished)} at their method's mean rate: about " \
+    return f"{done}; the other {unfinished.total()} at their method's mean rate: about " \
            f"{sum(count * rate for _, count, rate in rates):.1f} more ({parts})"
 
 
