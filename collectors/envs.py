@@ -13,6 +13,7 @@ from torchrl.envs.gym_like import BaseInfoDictReader
 
 import d2a_envs
 from collectors.expert_future import ExpertFuture
+from d2a_envs.factory import observation_read_steps
 from d2a_envs.wrappers import EndOnSuccess, SeedEachReset
 
 # Key of the simulator state under TorchRL: GymWrapper renames a Dict entry "state" to "observation".
@@ -61,7 +62,8 @@ def make_torchrl_env(
     ``seed=s`` the episodes use s, s + 1, ... whatever collector drives the env, and each
     step carries its episode's seed in ``episode_seed``. ``env_kwargs`` go to ``gym.make``, less
     :data:`EXPERT_FUTURE_KEY`, whose dict (``horizon``, ``num_points``, ``stacked_horizons``) adds
-    the expert's true future cloud (:class:`~collectors.expert_future.ExpertFuture`).
+    the expert's true future cloud (:class:`~collectors.expert_future.ExpertFuture`), looked up at
+    the steps ``read_steps`` gives ``imagined_point_cloud`` (:func:`d2a_envs.make_env`).
 
     Example:
         >>> env = make_torchrl_env("hammer", {"num_points": 512})
@@ -71,9 +73,11 @@ def make_torchrl_env(
     spec = d2a_envs.get_task(task)
     env_kwargs = dict(env_kwargs or {})
     future = env_kwargs.pop(EXPERT_FUTURE_KEY, None)
-    env = gym.make(spec.env_id, **env_kwargs)
+    # Gymnasium's checker would take the NaN of a step that read_steps skips for a broken observation.
+    env = gym.make(spec.env_id, disable_env_checker="read_steps" in env_kwargs, **env_kwargs)
     if future is not None:
-        env = ExpertFuture(env, **future)
+        imagined_steps = observation_read_steps(env_kwargs.get("read_steps"))[1]
+        env = ExpertFuture(env, **future, read_steps=imagined_steps)
     env = GymWrapper(SeedEachReset(EndOnSuccess(env) if end_on_success else env, seed=seed))
     env.set_info_dict_reader(D2AInfoReader())
     return TransformedEnv(env, StepCounter())

@@ -23,6 +23,7 @@ import numpy as np
 from gymnasium import spaces
 from metaworld.policies import ENV_POLICY_MAP
 
+from d2a_envs.read_steps import ReadSteps, unread_observation
 from d2a_envs.sampling import farthest_point_indices
 from d2a_envs.suites.metaworld import MetaWorldEnv
 from d2a_envs.wrappers import IMAGINED_KEY, PointCloudObservation, point_cloud_space
@@ -39,7 +40,9 @@ class ExpertFuture(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     The simulator (MuJoCo's data and the Meta-World env's attributes) is restored after each
     look ahead, so observations, rewards and successes are those of the env without this wrapper
-    (tested). The expert reads the 39-d ``state`` observation, so the env must keep it.
+    (tested). The expert reads the 39-d ``state`` observation, so the env must keep it. With
+    ``read_steps`` (:class:`~d2a_envs.read_steps.ReadSteps`), only the steps it reads look ahead;
+    the others hold NaN.
 
     Example:
         >>> env = ExpertFuture(gym.make("D2A-MetaWorld-Push-v0"), horizon=4, num_points=64)
@@ -50,9 +53,10 @@ class ExpertFuture(gym.Wrapper, gym.utils.RecordConstructorArgs):
         (3, 64, 3)
     """
 
-    def __init__(self, env: gym.Env, horizon: int, num_points: int, stacked_horizons: Sequence[int] = ()) -> None:
+    def __init__(self, env: gym.Env, horizon: int, num_points: int, stacked_horizons: Sequence[int] = (),
+                 read_steps: ReadSteps | None = None) -> None:
         gym.utils.RecordConstructorArgs.__init__(self, horizon=horizon, num_points=num_points,
-                                                 stacked_horizons=tuple(stacked_horizons))
+                                                 stacked_horizons=tuple(stacked_horizons), read_steps=read_steps)
         gym.Wrapper.__init__(self, env)
         base = env.unwrapped
         if not isinstance(base, MetaWorldEnv):
@@ -64,6 +68,8 @@ class ExpertFuture(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise ValueError(f"horizons and num_points must be at least 1, not {horizons} and {num_points}")
         self.horizons, self.num_points = tuple(horizons), int(num_points)
         self.stacked = bool(stacked_horizons)
+        self.read_steps = ReadSteps.from_any(read_steps)
+        self._step = 0
         self._clouds = _point_cloud_wrapper(env)
         self._expert = ENV_POLICY_MAP[base.task]()
         self._rng = np.random.default_rng(0)  # fills a cloud short of points; never the env's own generator
@@ -102,14 +108,20 @@ class ExpertFuture(gym.Wrapper, gym.utils.RecordConstructorArgs):
             points = points[farthest_point_indices(points, self.num_points)]
         return points.astype(np.float32)
 
+    def _add_future(self, observation: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        future = (self.future_cloud(observation["state"]) if self.read_steps(self._step)
+                  else unread_observation(self.observation_space[IMAGINED_KEY]))
+        return {**observation, IMAGINED_KEY: future}
+
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
-        return {**observation, IMAGINED_KEY: self.future_cloud(observation["state"])}, info
+        self._step = 0
+        return self._add_future(observation), info
 
     def step(self, action: np.ndarray):
         observation, reward, terminated, truncated, info = self.env.step(action)
-        observation = {**observation, IMAGINED_KEY: self.future_cloud(observation["state"])}
-        return observation, reward, terminated, truncated, info
+        self._step += 1
+        return self._add_future(observation), reward, terminated, truncated, info
 
 
 def _point_cloud_wrapper(env: gym.Env) -> PointCloudObservation:

@@ -97,6 +97,13 @@ def cmd_bench_latency(args: argparse.Namespace) -> None:
                        world_model=args.world_model, data=args.data))
 
 
+def cmd_bench_eval(args: argparse.Namespace) -> None:
+    from benchmarks.evaluation_speed import EvaluationSpeedConfig, run
+
+    run(replace_given(EvaluationSpeedConfig(policy=args.policy, task=args.task), episodes=args.episodes,
+                      rounds=args.rounds, seed=args.seed, threads=args.threads))
+
+
 def cmd_bench_train(args: argparse.Namespace) -> None:
     from benchmarks.train import TrainBenchConfig, run
 
@@ -323,6 +330,16 @@ def add_bench_commands(commands: Any) -> None:
     bench_latency.add_argument("--world-model", help="also time this trained world model (needs --data)")
     bench_latency.add_argument("--data", help="demonstrations to imagine from, with their recorded actions")
     bench_latency.set_defaults(func=cmd_bench_latency)
+
+    bench_eval = bench.add_parser("eval", help="a checkpoint's evaluation with every step's clouds made and with "
+                                               "only the steps its policy reads: ms per step, the same episodes")
+    bench_eval.add_argument("--policy", required=True, help="policy.pt of d2a train-policy, or its run directory")
+    bench_eval.add_argument("--task", required=True)
+    bench_eval.add_argument("--episodes", type=POSITIVE, default=None, help="per setting and round (default 5)")
+    bench_eval.add_argument("--rounds", type=POSITIVE, default=None, help="alternating rounds (default 2)")
+    bench_eval.add_argument("--seed", type=NON_NEGATIVE, default=None, help="first layout (default 100000)")
+    bench_eval.add_argument("--threads", type=POSITIVE, default=None, help="torch threads (default 1)")
+    bench_eval.set_defaults(func=cmd_bench_eval)
 
     bench_train = bench.add_parser("train", help="policy training throughput (samples/s) per preset and variant")
     bench_train.add_argument("--steps", type=POSITIVE, default=None, help="timed steps per row (default 30)")

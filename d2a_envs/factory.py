@@ -9,12 +9,13 @@ from typing import Any
 import gymnasium as gym
 
 from d2a_envs.defaults import default_config
+from d2a_envs.read_steps import ReadSteps
 from d2a_envs.sampling import CropBox
 from d2a_envs.sensor import PointCloudConfig
 from d2a_envs.suites.adroit import AdroitEnv
 from d2a_envs.suites.base import SuiteEnv
 from d2a_envs.suites.metaworld import MetaWorldEnv
-from d2a_envs.wrappers import ActionRepeat, CameraImageObservation, PointCloudObservation
+from d2a_envs.wrappers import IMAGINED_KEY, ActionRepeat, CameraImageObservation, PointCloudObservation
 
 _SUITE_ENVS: dict[str, type[SuiteEnv]] = {"metaworld": MetaWorldEnv, "adroit": AdroitEnv}
 # Wrappers that packages above this one provide by name (``world_model``: the imagination
@@ -63,6 +64,7 @@ def make_env(
     world_model: str | None = None,
     imagined_points: int | None = None,
     imagined_output: str | None = None,
+    read_steps: Mapping[str, ReadSteps | Sequence[int]] | None = None,
 ) -> gym.Env:
     """A suite env with point-cloud observations; ``None`` arguments take the suite default.
 
@@ -90,8 +92,9 @@ def make_env(
         if suite != "adroit":
             raise ValueError(f"physics_obs is available for Adroit tasks, not {suite}")
         suite_kwargs["physics_obs"] = True
+    cloud_steps, imagined_steps = observation_read_steps(read_steps)
     base = _SUITE_ENVS[suite](task, **suite_kwargs)
-    env = PointCloudObservation(base if action_repeat == 1 else ActionRepeat(base, action_repeat), config)
+    env = PointCloudObservation(base if action_repeat == 1 else ActionRepeat(base, action_repeat), config, cloud_steps)
     if rgb_image_size is not None:
         env = CameraImageObservation(env, config.cameras[0], rgb_image_size, config.backend, config.show_sites)
     if (imagined_points is not None or imagined_output is not None) and world_model is None:
@@ -101,5 +104,19 @@ def make_env(
 
         name = next((spec.name for spec in TASKS if spec.suite == suite and spec.task == task), None)
         output = {} if imagined_output is None else {"output": imagined_output}
-        env = plugin_wrapper("world_model")(env, world_model, task=name, num_points=imagined_points, **output)
+        if not cloud_steps.covers(imagined_steps):
+            raise ValueError(f"the world model imagines from the present cloud: it cannot be read at fewer steps "
+                             f"({cloud_steps}) than the imagined one ({imagined_steps})")
+        env = plugin_wrapper("world_model")(env, world_model, task=name, num_points=imagined_points,
+                                            read_steps=imagined_steps, **output)
     return env
+
+
+def observation_read_steps(read_steps: Mapping[str, ReadSteps | Sequence[int]] | None) -> tuple[ReadSteps, ReadSteps]:
+    """The steps at which ``point_cloud`` and ``imagined_point_cloud`` are read (every step
+    unless given); a key other than these two is refused."""
+    read_steps = dict(read_steps or {})
+    unknown = set(read_steps) - {"point_cloud", IMAGINED_KEY}
+    if unknown:
+        raise ValueError(f"read_steps covers point_cloud and {IMAGINED_KEY} only, not {sorted(unknown)}")
+    return ReadSteps.from_any(read_steps.get("point_cloud")), ReadSteps.from_any(read_steps.get(IMAGINED_KEY))

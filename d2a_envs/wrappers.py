@@ -11,6 +11,7 @@ from gymnasium import spaces
 
 from d2a_envs.camera import camera_id
 from d2a_envs.depth import make_depth_backend
+from d2a_envs.read_steps import ReadSteps, unread_observation
 from d2a_envs.sensor import PointCloudConfig, PointCloudSensor
 
 # The colour image observation of 2D image policies (``--algo dp``).
@@ -34,7 +35,9 @@ class PointCloudObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     The wrapped env must expose MuJoCo ``model`` and ``data`` on ``env.unwrapped``. Filling
     (when the crop holds fewer than N points) draws from the base env's seeded generator,
     so ``reset(seed=s)`` reproduces the cloud; ``info["num_points_in_crop"]`` reports how
-    many distinct points the crop held.
+    many distinct points the crop held. With ``read_steps``
+    (:class:`~d2a_envs.read_steps.ReadSteps`), the steps it skips are not rendered: their cloud
+    is NaN and their ``num_points_in_crop`` -1 (the other steps' clouds are the same).
 
     Example:
         >>> env = PointCloudObservation(MetaWorldEnv("hammer-v3"), SUITE_DEFAULTS["metaworld"])
@@ -43,17 +46,22 @@ class PointCloudObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         (1024, 3)
     """
 
-    def __init__(self, env: gym.Env, config: PointCloudConfig) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, config=config)
+    def __init__(self, env: gym.Env, config: PointCloudConfig, read_steps: ReadSteps | None = None) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, config=config, read_steps=read_steps)
         gym.Wrapper.__init__(self, env)
         if not isinstance(env.observation_space, spaces.Dict):
             raise TypeError(f"PointCloudObservation needs a Dict observation space, got {env.observation_space}")
         self.config = config
+        self.read_steps = ReadSteps.from_any(read_steps)
+        self._step = 0
         self.sensor = PointCloudSensor(config)
         self.sensor.validate(env.unwrapped.model)
         self.observation_space = spaces.Dict({**env.observation_space.spaces, "point_cloud": point_cloud_space(config)})
 
     def _add_cloud(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> dict[str, np.ndarray]:
+        if not self.read_steps(self._step):
+            info["num_points_in_crop"] = -1
+            return {**observation, "point_cloud": unread_observation(self.observation_space["point_cloud"])}
         base = self.env.unwrapped
         reading = self.sensor.read(base.model, base.data, base.np_random)
         info["num_points_in_crop"] = reading.num_in_crop
@@ -61,10 +69,12 @@ class PointCloudObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
+        self._step = 0
         return self._add_cloud(observation, info), info
 
     def step(self, action: np.ndarray):
         observation, reward, terminated, truncated, info = self.env.step(action)
+        self._step += 1
         return self._add_cloud(observation, info), reward, terminated, truncated, info
 
     def close(self) -> None:

@@ -262,6 +262,7 @@ def test_defaults_live_in_the_configs_alone(collect_config):
     (["bench", "envs"], "benchmarks.envs", "EnvBenchConfig"),
     (["bench", "experts"], "benchmarks.experts", "ExpertBenchConfig"),
     (["bench", "latency"], "benchmarks.latency", "LatencyBenchConfig"),
+    (["bench", "eval", "--policy", "p", "--task", "push"], "benchmarks.evaluation_speed", "EvaluationSpeedConfig"),
     (["bench", "train"], "benchmarks.train", "TrainBenchConfig"),
     (["bench", "ablate", "--data", "d", "--task", "hammer"], "benchmarks.ablation", "AblationConfig"),
     (["bench", "ray"], "benchmarks.ray_scaling", "RayScalingConfig"),
@@ -277,6 +278,7 @@ def test_bench_defaults_live_in_their_configs(argv, module, config, monkeypatch)
     monkeypatch.setattr(bench, "run", lambda given: seen.setdefault("config", given))
     main(argv)
     required = {"AblationConfig": {"data": "d", "task": "hammer"},
+                "EvaluationSpeedConfig": {"policy": "p", "task": "push"},
                 "WorldModelFitConfig": {"world_model": "w", "data": "d", "demos": 5}}.get(config, {})
     assert seen["config"] == getattr(bench, config)(**required)
 

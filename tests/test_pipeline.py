@@ -127,6 +127,39 @@ def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_mode
     gate = [(row["cfg_weight"], row["cfg_rho"], row["cfg_active"]) for row in payload["metrics"]]
     assert len(gate) == 3 and all(0 <= w <= 1 and -1 <= rho <= 1 and 0 <= active <= 1 for w, rho, active in gate)
     assert history[0].episodes == 1
+    assert_the_steps_it_skips_change_nothing(tmp_path)
+
+
+def assert_the_steps_it_skips_change_nothing(run: Path) -> None:
+    """An evaluation that renders and imagines only the steps the policy reads plays the same
+    episodes as one that makes every step's clouds (returns sum every step's reward: the same
+    actions throughout)."""
+    skipped, every = (evaluate_checkpoint(run, "reach", 1, seed=5, progress=False, skip_unread=skip)
+                      for skip in (True, False))
+    assert (skipped.successes, skipped.lengths, skipped.returns) == (every.successes, every.lengths, every.returns)
+
+
+def test_bench_eval_times_both_settings_and_a_policy_refuses_a_cloud_its_env_skipped(reach_data, tmp_path, capsys):
+    from benchmarks.evaluation_speed import EvaluationSpeedConfig
+    from benchmarks.evaluation_speed import run as bench_eval
+    from d2a_envs.read_steps import ReadSteps
+    from d2a_envs.wrappers import IMAGINED_KEY
+
+    train_policy(policy_config("mp1", reach_data, tmp_path, steps=1))
+    timings = bench_eval(EvaluationSpeedConfig(policy=str(tmp_path), task="reach", episodes=1, rounds=1))
+    assert {name: len(rounds) for name, rounds in timings.items()} == {"every step": 1, "steps read": 1}
+    assert all(ms > 0 for rounds in timings.values() for ms in rounds)
+    printed = capsys.readouterr().out
+    assert "the same in both settings" in printed and "| steps read |" in printed
+    payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
+    config = PolicyConfig.from_dict(payload["policy_config"])  # plans every 3 steps from the last 2 observations
+    assert config.read_steps() == {"point_cloud": ReadSteps(3, 2)}
+    assert PolicyConfig(algo="d2a").read_steps() == {"point_cloud": ReadSteps(3, 2), IMAGINED_KEY: ReadSteps(3, 1)}
+    assert PolicyConfig(algo="mp1-state", n_action_steps=1).read_steps() == {"point_cloud": ReadSteps(1, 0)}
+    kwargs = {**eval_env_kwargs(payload, "reach"), "read_steps": {"point_cloud": ReadSteps(3, 1)}}  # one short
+    with pytest.raises(ValueError, match="skipped a point_cloud this policy reads"):
+        evaluate(lambda: load_torchrl_policy(tmp_path / CHECKPOINT_NAME), "reach", 1, seed=5, env_kwargs=kwargs,
+                 progress=False)
 
 
 def test_d2a_change_trains_and_acts_on_the_voxels_its_world_model_fills(reach_data, world_model, tmp_path):
@@ -565,6 +598,7 @@ def test_the_oracle_reads_the_demonstrations_future_in_training_and_the_simulato
         assert torch.equal(frames[IMAGINED_KEY][row], frames["point_cloud"][future])
     _, history = train_policy(config)
     assert history[0].episodes == 1  # it acted on the simulator's look-ahead
+    assert_the_steps_it_skips_change_nothing(tmp_path)
     payload = load_checkpoint(tmp_path / CHECKPOINT_NAME, "policy")
     assert payload["world_model"] is None
     assert eval_env_kwargs(payload, "reach")["expert_future"] == {"horizon": horizon, "num_points": 64}

@@ -55,6 +55,7 @@ from torch import nn
 from collectors.dataset import Normalizer
 from collectors.envs import STATE_KEY
 from d2a_agents.policy.networks import EncoderConfig, ObservationEncoder, VelocityNet, VelocityNetConfig
+from d2a_envs.read_steps import ReadSteps
 from d2a_envs.sampling import farthest_point_indices
 from d2a_envs.wrappers import IMAGE_KEY, IMAGINED_KEY
 
@@ -221,6 +222,25 @@ class PolicyConfig:
     def executed_actions(self) -> int:
         """Actions executed per chunk: the chunk starts at the oldest observation."""
         return min(self.n_action_steps, self.horizon - (self.n_obs_steps - 1))
+
+    @property
+    def clouds_read(self) -> dict[str, int]:
+        """The env's clouds the encoders read, each with how many of a window's latest
+        observations they read it from (the imagined cloud: ``imagined_steps`` of them)."""
+        encoder = self.encoder
+        read = {"point_cloud": self.n_obs_steps} if encoder.use_cloud else {}
+        if self.variant.imagination in ("world-model", "oracle"):
+            read[IMAGINED_KEY] = encoder.imagined_steps
+        return read
+
+    def read_steps(self) -> dict[str, ReadSteps]:
+        """The steps of an episode at which acting reads each env cloud (a plan every
+        ``executed_actions`` steps, from the latest observations of :attr:`clouds_read`): what an
+        evaluation env has to render or imagine (``make_env``'s ``read_steps``). A policy that
+        reads no cloud reads ``point_cloud`` at no step."""
+        period = self.executed_actions
+        read = {"point_cloud": 0} | self.clouds_read
+        return {key: ReadSteps(period, window) for key, window in read.items()}
 
     def to_dict(self) -> dict:
         """Every setting, less the image encoder's where the policy reads no image (there they
@@ -390,19 +410,32 @@ class Policy(nn.Module):
             source = "point_cloud" if key == IMAGINED_KEY and self.config.variant.imagination == "present" else key
             value = torch.as_tensor(np.asarray(observation[source]), dtype=torch.float32)
             points = self.config.imagined_point_count if key == IMAGINED_KEY else self.config.num_points
+            if value.ndim == 2 and value.isnan().all():  # a step the env skipped (ReadSteps): kept as NaN
+                value = value[:points, :3]
             frame[key] = subsample_cloud(value[:, :3], points) if value.ndim == 2 else value
         if not self._history:
             self._history.extend([frame] * self.config.n_obs_steps)  # repeat the first frame, as in training
         else:
             self._history.append(frame)
 
+    def _window(self) -> dict[str, torch.Tensor]:
+        """The planning window (batch of 1): each observation over the latest frames the encoders
+        read of it (an imagined cloud over ``imagined_steps``, the others over all); a cloud the env
+        skipped there is refused (the env was not made with this policy's read steps)."""
+        frames, window = list(self._history), {}
+        for key in self.config.observation_keys:
+            window[key] = torch.stack([frame[key] for frame in frames[-self.config.clouds_read.get(key, len(frames)):]])
+            if key in CLOUD_KEYS and window[key].isnan().any():
+                raise ValueError(f"the env skipped a {key} this policy reads: make it with the policy's "
+                                 f"read steps ({self.config.read_steps()[key]}) or with none")
+        return {key: value[None] for key, value in window.items()}
+
     @torch.no_grad()
     def select_action(self, observation: dict[str, np.ndarray]) -> np.ndarray:
         """The next action (A,) float32 for one raw env observation (keys as the env names them)."""
         self._observe(observation)
         if not self._queue:
-            window = {key: torch.stack([frame[key] for frame in self._history])[None]
-                      for key in self.config.observation_keys}
+            window = self._window()
             was_training = self.training
             chunk = self.eval().predict_action_chunk(window, self._generator)[0].numpy()
             self.train(was_training)

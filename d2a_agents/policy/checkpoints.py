@@ -143,19 +143,25 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
 def evaluate_checkpoint(
     path: str | Path, task: str, episodes: int, seed: int, workers: int = 1, progress: bool = True,
     end_on_success: bool = False, ray_address: str | None = None, acting: Acting = Acting(),
+    skip_unread: bool = True,
 ) -> EvaluationResult:
     """Evaluate a checkpoint's EMA policy on ``task`` in the env it was trained with (its
     point-cloud settings, its world model when it imagines, the episode length of its
-    demonstrations); a task it was not trained on,
+    demonstrations), which renders and imagines only the steps whose clouds the policy reads
+    (:meth:`~d2a_agents.policy.agent.PolicyConfig.read_steps`; ``skip_unread=False`` makes every
+    step's, for the same outcomes more slowly); a task it was not trained on,
     or a checkpoint it cannot read, is refused before any worker starts. ``end_on_success``,
     ``ray_address``: see :func:`~collectors.evaluation.evaluate` (on Ray, the checkpoint and
     its world model must be readable on every node); ``acting``: see :class:`Acting`."""
-    _, payload = load_policy(path, acting=acting)
+    policy, payload = load_policy(path, acting=acting)
     name = _trained_task(path, payload, task)
     path = policy_file(path).resolve()  # a worker on Ray may start elsewhere
     max_steps = payload["env_kwargs"][name].get("max_episode_steps", DEFAULT_MAX_EPISODE_STEPS)
+    env_kwargs = eval_env_kwargs(payload, name)
+    if skip_unread:
+        env_kwargs["read_steps"] = policy.config.read_steps()
     return evaluate(functools.partial(load_torchrl_policy, path, acting), name, episodes, seed,
-                    env_kwargs=eval_env_kwargs(payload, name), workers=workers, progress=progress,
+                    env_kwargs=env_kwargs, workers=workers, progress=progress,
                     end_on_success=end_on_success, ray_address=ray_address, max_steps=max_steps)
 
 

@@ -28,6 +28,7 @@ from torchrl.envs import Transform
 
 from d2a_agents.checkpoint import CheckpointError
 from d2a_agents.world_model.imagine import Imaginer
+from d2a_envs.read_steps import ReadSteps, unread_observation
 from d2a_envs.sampling import CropBox
 from d2a_envs.wrappers import IMAGINED_KEY, PointCloudObservation
 
@@ -120,6 +121,9 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         num_points: points of the imagined cloud; default: those of the env's cloud.
         output: what the imagined cloud holds, "future" or "change" (see
             :class:`~d2a_agents.world_model.imagine.Imaginer`).
+        read_steps: the steps whose imagined cloud is read
+            (:class:`~d2a_envs.read_steps.ReadSteps`; default every step): the others are not
+            imagined and hold NaN (the action history still takes every action).
 
     Example:
         >>> env = gym.make("D2A-MetaWorld-Hammer-v0", world_model="runs/hammer/wm.pt")
@@ -130,10 +134,10 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def __init__(
         self, env: gym.Env, world_model: Imaginer | str | os.PathLike, seed: int = 0, task: str | None = None,
-        num_points: int | None = None, output: str = "future",
+        num_points: int | None = None, output: str = "future", read_steps: ReadSteps | None = None,
     ) -> None:
         gym.utils.RecordConstructorArgs.__init__(self, world_model=world_model, seed=seed, task=task,
-                                                 num_points=num_points, output=output)
+                                                 num_points=num_points, output=output, read_steps=read_steps)
         gym.Wrapper.__init__(self, env)
         space = env.observation_space
         if not isinstance(space, spaces.Dict) or "point_cloud" not in space.spaces:
@@ -158,6 +162,8 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.history_length = self.imaginer.config.action_history
         self.action_dim = self.imaginer.config.action_dim
         self._history = np.zeros((self.history_length, self.action_dim), dtype=np.float32)
+        self.read_steps = ReadSteps.from_any(read_steps)
+        self._step = 0
         self.observation_space = spaces.Dict(
             {**space.spaces, IMAGINED_KEY: imagined_cloud_space(self.imaginer.grid.box, num_points)}
         )
@@ -168,6 +174,8 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return self._history.copy()
 
     def _imagine(self, observation: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        if not self.read_steps(self._step):
+            return {**observation, IMAGINED_KEY: unread_observation(self.observation_space[IMAGINED_KEY])}
         imagined = self.imaginer(observation["point_cloud"], self._history)
         return {**observation, IMAGINED_KEY: imagined}
 
@@ -176,12 +184,14 @@ class ImaginationWrapper(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if seed is not None:
             self.imaginer.rng = np.random.default_rng(seed)
         self._history = np.zeros_like(self._history)
+        self._step = 0
         return self._imagine(observation), info
 
     def step(self, action: np.ndarray):
         observation, reward, terminated, truncated, info = self.env.step(action)
         taken = np.asarray(action, dtype=np.float32).reshape(self.action_dim)
         self._history = np.concatenate([self._history[1:], taken[None]], axis=0)
+        self._step += 1
         return self._imagine(observation), reward, terminated, truncated, info
 
 
