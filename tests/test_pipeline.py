@@ -130,6 +130,15 @@ def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_mode
     assert_the_steps_it_skips_change_nothing(tmp_path)
 
 
+def test_an_env_refuses_to_imagine_from_a_cloud_it_skips(world_model):
+    import d2a_envs
+    from d2a_envs.wrappers import IMAGINED_KEY
+
+    with pytest.raises(ValueError, match="imagines from the present cloud"):
+        d2a_envs.make_env("metaworld", "reach-v3", world_model=world_model, image_size=48, num_points=128,
+                          read_steps={"point_cloud": (3, 1), IMAGINED_KEY: (3, 2)})
+
+
 def assert_the_steps_it_skips_change_nothing(run: Path) -> None:
     """An evaluation that renders and imagines only the steps the policy reads plays the same
     episodes as one that makes every step's clouds (returns sum every step's reward: the same
