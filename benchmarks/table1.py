@@ -202,7 +202,9 @@ def report(cells: list[Cell], config: Table1Config) -> str:
     """Markdown: the paper-format table (per group: mean ± std over complete seeds, both
     protocols; the honest one with its pooled 95 % interval) beside the paper's rows."""
     rows = group_rows(cells)
-    algos = list(dict.fromkeys([*config.algos, *(cell.algo for cell in cells)]))  # stable rows, then any other
+    # The default methods' rows first, then the others as the cells come: the same rows whatever
+    # subset of the grid this run covers.
+    algos = list(dict.fromkeys([*Table1Config.algos, *(cell.algo for cell in cells)]))
     header = ([GROUP_TITLES[group] for group in GROUPS[::-1]]
               + [_adroit_title(task) for task in ADROIT_COLUMNS])
     bench = config.cell_config()
@@ -326,11 +328,12 @@ def write_report(cells: list[Cell], config: Table1Config) -> str:
 
 def finished_cells(config: Table1Config, max_seed: int = 10) -> list[Cell]:
     """Every Table I cell already in ``results/cells`` at this config's per-cell settings, of any
-    group, method and seed below ``max_seed``, in the grid's order: a run of one group or method
-    reports the others' finished cells too."""
+    group, method and seed below ``max_seed``, in the full grid's order whatever this run's
+    methods and seeds: a run of one group or method reports the others' finished cells too, and
+    writes the same report files as a run of the whole grid."""
     everything = dataclasses.replace(config, groups=TABLE1_GROUPS,
-                                     algos=tuple(dict.fromkeys((*config.algos, *ALGORITHMS))),
-                                     seeds=tuple(dict.fromkeys((*config.seeds, *range(max_seed)))))
+                                     algos=tuple(dict.fromkeys((*Table1Config.algos, *ALGORITHMS))),
+                                     seeds=tuple(sorted({*config.seeds, *range(max_seed)})))
     settings = {task: config.task_cell_config(task) for group in TABLE1_GROUPS for task in group_tasks(group)}
     return [read_cell(path) for key in plan(everything) if (path := cell_path(settings[key[0]], *key)).exists()]
 

@@ -174,6 +174,20 @@ def test_a_run_of_one_group_and_method_reports_every_finished_cell(tmp_path):
     assert rows["`d2a`", "honest"][3] == "40.0 over 1/5 tasks"
 
 
+def test_a_run_of_some_methods_and_seeds_writes_the_whole_grids_report(tmp_path):
+    """The lanes of a grid run subsets of it: the files they write must not depend on which."""
+    whole = Table1Config(groups=("very_hard",), results=str(tmp_path))
+    for task, algo, seed in [(VERY_HARD[0], "mp1", 0), (VERY_HARD[0], "d2a", 0), (VERY_HARD[1], "dp3", 2),
+                             (VERY_HARD[1], "mp1", 1), ("push", "d2a-present", 0)]:
+        success._store(whole.cell_config(), _cell(task, algo, seed, 30 + seed))
+    written = []
+    for config in (whole, dataclasses.replace(whole, groups=("hard",), algos=("d2a-present", "d2a"), seeds=(2, 1))):
+        run(config, report_only=True)
+        written.append([(tmp_path / name).read_text() for name in ("table1.md", "tasks.csv", "tasks.md")])
+    assert written[0] == written[1]
+    assert len(written[0][1].splitlines()) == 6  # every stored cell, once
+
+
 def test_a_cell_another_process_holds_is_skipped(tmp_path, monkeypatch):
     config = SuccessBenchConfig(tasks=("reach",), algos=("mp1",), seeds=(0, 1), workdir=str(tmp_path))
     trained = []
