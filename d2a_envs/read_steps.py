@@ -41,11 +41,6 @@ class ReadSteps:
     def __call__(self, step: int) -> bool:
         return self.window > 0 and (-step) % self.period < self.window
 
-    @property
-    def reads_every_step(self) -> bool:
-        """Whether no step is skipped."""
-        return self.window >= self.period
-
     def covers(self, other: ReadSteps) -> bool:
         """Whether every step ``other`` reads is read here too (both repeat within their periods'
         least common multiple, so that span decides)."""

@@ -422,9 +422,9 @@ class Policy(nn.Module):
         """The planning window (batch of 1): each observation over the latest frames the encoders
         read of it (an imagined cloud over ``imagined_steps``, the others over all); a cloud the env
         skipped there is refused (the env was not made with this policy's read steps)."""
-        frames, window = list(self._history), {}
+        frames, read, window = list(self._history), self.config.clouds_read, {}
         for key in self.config.observation_keys:
-            window[key] = torch.stack([frame[key] for frame in frames[-self.config.clouds_read.get(key, len(frames)):]])
+            window[key] = torch.stack([frame[key] for frame in frames[-read.get(key, len(frames)):]])
             if key in CLOUD_KEYS and window[key].isnan().any():
                 raise ValueError(f"the env skipped a {key} this policy reads: make it with the policy's "
                                  f"read steps ({self.config.read_steps()[key]}) or with none")
