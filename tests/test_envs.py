@@ -213,8 +213,9 @@ def test_default_episode_is_200_steps_and_configurable():
 def test_episodes_longer_than_metaworlds_own_limit():
     env = make("reach", max_episode_steps=510, image_size=16, num_points=8)
     env.reset(seed=0)
-    for _ in range(505):  # Meta-World itself raises after 500 steps
-        env.step(env.action_space.sample())
+    for step in range(1, 511):  # Meta-World itself raises after 500 steps
+        *_, truncated, _ = env.step(env.action_space.sample())
+        assert truncated == (step == 510)
 
 
 @pytest.mark.parametrize("task", ["hammer", "adroit-pen"])
