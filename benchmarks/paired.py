@@ -50,6 +50,7 @@ class PairedConfig:
     plot: str | None = None  # where to draw the per-pair differences (none: no plot)
     markdown: str | None = None  # where to write the report as well as printing it (none: print only)
     tasks: tuple[str, ...] = ()  # only these tasks' pairs (cell-name spelling, e.g. adroit-door; none: all)
+    demos: tuple[int, ...] = ()  # only the pairs trained on these numbers of demonstrations (none: all)
     runs: tuple[str, ...] = ()  # work directories whose runs/<cell name>/ hold the cells' checkpoints (none: not read)
 
     def __post_init__(self) -> None:
@@ -118,15 +119,17 @@ def find_pairs(files: list[Path], algo: str, control: str, reference: str | None
 
 
 def pairs_in(directories: tuple[str, ...], algo: str, control: str, reference: str | None = None,
-             tasks: tuple[str, ...] = ()) -> list[Pair]:
-    """The pairs of every directory (of ``tasks`` only, when given), in order; a pair found again in
-    a later directory with the same two cells (cells one grid copied from another, ``--shared-cells``)
-    counts once, while a pair of the same name with another cell on either side is a pair of its own."""
+             tasks: tuple[str, ...] = (), demos: tuple[int, ...] = ()) -> list[Pair]:
+    """The pairs of every directory (of ``tasks`` and ``demos`` demonstrations only, when given), in
+    order; a pair found again in a later directory with the same two cells (cells one grid copied from
+    another, ``--shared-cells``) counts once, while a pair of the same name with another cell on either
+    side is a pair of its own."""
     seen, pairs = set(), []
     for directory in directories:
         for pair in find_pairs(cell_files(directory), algo, control, reference):
             key = (pair.name, repr(pair.treated), repr(pair.control))
-            if (not tasks or pair.treated.task in tasks) and key not in seen:
+            wanted = (not tasks or pair.treated.task in tasks) and (not demos or pair.treated.demos in demos)
+            if wanted and key not in seen:
                 seen.add(key)
                 pairs.append(pair)
     return pairs
@@ -302,9 +305,10 @@ def plot(pairs: list[Pair], config: PairedConfig, path: str | Path) -> Path:
 
 
 def run(config: PairedConfig) -> list[Pair]:
-    pairs = pairs_in(config.results, config.algo, config.control, config.reference, config.tasks)
+    pairs = pairs_in(config.results, config.algo, config.control, config.reference, config.tasks, config.demos)
     if not pairs:
         among = f" of {', '.join(config.tasks)}" if config.tasks else ""
+        among += f" at {' or '.join(map(str, config.demos))} demonstrations" if config.demos else ""
         raise ValueError(f"no {config.algo} cell{among} in {', '.join(config.results)} has a {config.control} twin")
     text = report(pairs, config)
     print(text)
@@ -329,6 +333,7 @@ def markdown_page(text: str, config: PairedConfig) -> str:
     """``report``'s text as a page: a title, the command that rewrites it, the plot (when drawn)."""
     options = [*(f"--results {directory}" for directory in config.results), f"--algo {config.algo}",
                f"--control {config.control}", *(f"--task {task}" for task in config.tasks),
+               *(f"--demos {count}" for count in config.demos),
                *(f"--runs {directory}" for directory in config.runs)]
     if config.reference:
         options.append(f"--reference {config.reference}")

@@ -221,7 +221,8 @@ def cmd_bench_paired(args: argparse.Namespace) -> None:
 
     run(replace_given(PairedConfig(results=tuple(args.results)), algo=args.algo, control=args.control,
                        reference=args.reference, plot=args.plot, markdown=args.markdown,
-                       tasks=tuple(args.task) if args.task else None, runs=tuple(args.runs) if args.runs else None))
+                       tasks=tuple(args.task) if args.task else None, demos=tuple(args.demos) if args.demos else None,
+                       runs=tuple(args.runs) if args.runs else None))
 
 
 def cmd_bench_order(args: argparse.Namespace) -> None:
@@ -498,6 +499,8 @@ def add_bench_commands(commands: Any) -> None:
     bench_paired.add_argument("--reference", choices=ALGOS, default=None,
                               help="a third method shown beside each pair and compared with --algo over the pairs "
                                    "that have its cell (default: mp1)")
+    bench_paired.add_argument("--demos", type=POSITIVE, action="append", default=None,
+                              help="only the cells trained on this many demonstrations (repeatable; default: all)")
     bench_paired.add_argument("--plot", default=None, help="a PNG of the per-pair differences (default: none)")
     bench_paired.add_argument("--runs", action="append", default=None, metavar="WORKDIR",
                               help="a grid's work directory (its runs/ hold the cells' checkpoints): each side's "

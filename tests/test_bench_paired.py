@@ -26,10 +26,11 @@ from d2a.cli import main
 from d2a_agents.checkpoint import save_checkpoint
 
 
-def _write(directory, name: str, wins: int, episodes: int = 100, reliance: dict | None = None) -> None:
+def _write(directory, name: str, wins: int, episodes: int = 100, reliance: dict | None = None,
+           demos: int = 10) -> None:
     task, algo, rest = name.split("_", 2)
     cell = Cell(task, algo, int(rest.split("_")[0][1:]), [wins / episodes], wins, episodes, train_seconds=1.0,
-                reliance=reliance)
+                reliance=reliance, demos=demos)
     directory.mkdir(parents=True, exist_ok=True)
     (directory / f"{name}.json").write_text(json.dumps(dataclasses.asdict(cell)))
 
@@ -147,6 +148,19 @@ def test_pairs_can_be_kept_to_some_tasks(tmp_path, capsys):
     assert "| adroit-door_s0_e5 | 20/100 | 50/100 | -30 |" in out and "push_s0" not in out and "1 pair of" in out
     with pytest.raises(SystemExit, match="no d2a cell of reach"):
         main(["bench", "paired", "--results", str(tmp_path), "--task", "reach"])
+
+
+def test_pairs_can_be_kept_to_some_demonstration_counts(tmp_path, capsys):
+    for demos, wins in ((1, 12), (2, 30), (10, 90)):
+        tag = "" if demos == 10 else f"_d{demos}"
+        _write(tmp_path, f"push_d2a_s0_e5{tag}", wins, demos=demos)
+        _write(tmp_path, f"push_d2a-present_s0_e5{tag}", 20, demos=demos)
+    main(["bench", "paired", "--results", str(tmp_path), "--demos", "1", "--demos", "2"])
+    out = capsys.readouterr().out
+    assert "| push_s0_e5_d1 | 12/100 | 20/100 | -8 |" in out and "| push_s0_e5_d2 | 30/100 | 20/100 | +10 |" in out
+    assert "2 pairs of" in out and "push_s0_e5 |" not in out
+    with pytest.raises(SystemExit, match="no d2a cell at 5 demonstrations"):
+        main(["bench", "paired", "--results", str(tmp_path), "--demos", "5"])
 
 
 def test_a_grid_report_closes_with_its_pairs():
