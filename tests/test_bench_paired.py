@@ -21,13 +21,13 @@ from benchmarks.paired import (
     report,
     summarize_pairs,
 )
-from benchmarks.success import Cell
+from benchmarks.success import DEFAULT_DEMOS, Cell
 from d2a.cli import main
 from d2a_agents.checkpoint import save_checkpoint
 
 
 def _write(directory, name: str, wins: int, episodes: int = 100, reliance: dict | None = None,
-           demos: int = 10) -> None:
+           demos: int = DEFAULT_DEMOS) -> None:
     task, algo, rest = name.split("_", 2)
     cell = Cell(task, algo, int(rest.split("_")[0][1:]), [wins / episodes], wins, episodes, train_seconds=1.0,
                 reliance=reliance, demos=demos)
@@ -151,8 +151,8 @@ def test_pairs_can_be_kept_to_some_tasks(tmp_path, capsys):
 
 
 def test_pairs_can_be_kept_to_some_demonstration_counts(tmp_path, capsys):
-    for demos, wins in ((1, 12), (2, 30), (10, 90)):
-        tag = "" if demos == 10 else f"_d{demos}"
+    for demos, wins in ((1, 12), (2, 30), (DEFAULT_DEMOS, 90)):
+        tag = "" if demos == DEFAULT_DEMOS else f"_d{demos}"
         _write(tmp_path, f"push_d2a_s0_e5{tag}", wins, demos=demos)
         _write(tmp_path, f"push_d2a-present_s0_e5{tag}", 20, demos=demos)
     main(["bench", "paired", "--results", str(tmp_path), "--demos", "1", "--demos", "2"])
