@@ -39,7 +39,17 @@ def add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: str
                              "not rerun (repeatable)")
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch threads per cell (default 1)")
     parser.add_argument("--report", action="store_true", help="only write the report of the finished cells")
+    add_world_model_data_options(parser)
     add_ray_option(parser)
+
+
+def add_world_model_data_options(parser: argparse.ArgumentParser) -> None:
+    """What the world model trains on beyond the cell's demonstrations (the policy never sees it);
+    the imagining cells, their data and world models are named apart, the others are shared."""
+    parser.add_argument("--wm-rollouts", type=NON_NEGATIVE, default=None,
+                        help="noisy expert rollouts per task the world model also trains on (default 0)")
+    parser.add_argument("--rollout-noise", type=NON_NEGATIVE_FLOAT, default=None,
+                        help="std of their action noise (default 0.3)")
 
 
 def add_cell_reading_options(parser: argparse.ArgumentParser) -> None:
@@ -194,7 +204,8 @@ def grid_cells(base: Any, args: argparse.Namespace) -> Any:
     """A grid bench's per-cell settings (``SuccessBenchConfig``) with the options given."""
     return replace_given(with_policy_options(base, args), workdir=args.workdir, threads=args.threads,
                           ray_address=args.ray, evaluations=args.evaluations, eval_layouts=args.eval_layouts,
-                          workers=args.workers, shared_cells=tuple(args.shared_cells) if args.shared_cells else None)
+                          workers=args.workers, shared_cells=tuple(args.shared_cells) if args.shared_cells else None,
+                          wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise)
 
 
 def cmd_bench_table1(args: argparse.Namespace) -> None:
@@ -447,10 +458,7 @@ def add_bench_commands(commands: Any) -> None:
                                help="demo: 32x32x8 Conv3d (the cpu preset's); cpu: d2a train-wm's 128x128x32 "
                                     "point-scatter (default: the preset's)")
     bench_success.add_argument("--wm-steps", type=POSITIVE, default=None, help="world-model training steps")
-    bench_success.add_argument("--wm-rollouts", type=NON_NEGATIVE, default=None,
-                               help="noisy expert rollouts per task the world model also trains on (default 0)")
-    bench_success.add_argument("--rollout-noise", type=NON_NEGATIVE_FLOAT, default=None,
-                               help="std of their action noise (default 0.3)")
+    add_world_model_data_options(bench_success)
     bench_success.add_argument("--dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
                                help="collect the demonstrations with DART noise (d2a collect --dart-noise); their "
                                     "data, world models and cells are named apart")

@@ -89,6 +89,9 @@ def test_cli_options(monkeypatch):
     assert (config.tasks, config.demos, config.algos, config.seeds) == (("push",), (5, 1), ("d2a-change",), (1,))
     assert config.bench.evaluations == 1 and seen["report"]
     assert (config.cell_config(1).demos, config.cell_config(1).pool) == (1, 20)
+    main(["bench", "table4", "--demos", "2", "--wm-rollouts", "20", "--rollout-noise", "0.2"])
+    cell_config = seen["config"].cell_config(2)
+    assert (cell_config.wm_rollouts, cell_config.rollout_noise) == (20, 0.2)
 
 
 def test_the_plot_keeps_one_colour_per_method_and_names_every_method(tmp_path, monkeypatch):
