@@ -177,6 +177,13 @@ def cmd_bench_wm_fit(args: argparse.Namespace) -> None:
                        stride=args.stride))
 
 
+def cmd_bench_policy_fit(args: argparse.Namespace) -> None:
+    from benchmarks.policy_fit import PolicyFitConfig, run
+
+    run(replace_given(PolicyFitConfig(policies=tuple(args.policy)), data=args.data, demos=args.demos,
+                       windows=args.windows))
+
+
 def cmd_bench_success(args: argparse.Namespace) -> None:
     from benchmarks.success import PRESETS, run
 
@@ -426,6 +433,17 @@ def add_bench_commands(commands: Any) -> None:
                               help="the world model trained on the first N of each task")
     bench_wm_fit.add_argument("--stride", type=POSITIVE, default=None, help="every k-th transition (default 5)")
     bench_wm_fit.set_defaults(func=cmd_bench_wm_fit)
+
+    bench_policy_fit = bench.add_parser("policy-fit", help="a policy's one-step error on the demonstrations it "
+                                                           "trained on and on unseen ones, with its reliance")
+    bench_policy_fit.add_argument("--policy", action="append", required=True,
+                                  help="a checkpoint or run directory (repeatable)")
+    bench_policy_fit.add_argument("--data", default=None, help="default: the data set each policy trained on")
+    bench_policy_fit.add_argument("--demos", type=POSITIVE, default=None,
+                                  help="the policies trained on the first N of each task (default: each one's own)")
+    bench_policy_fit.add_argument("--windows", type=POSITIVE, default=None,
+                                  help="windows per split, at most (default 512)")
+    bench_policy_fit.set_defaults(func=cmd_bench_policy_fit)
 
     bench_success = bench.add_parser("success", help="success rates of d2a / d2a-no-cfg / mp1 / dp3, both protocols")
     bench_success.add_argument("--preset", choices=("cpu", "paper"), default="cpu",

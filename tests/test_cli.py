@@ -269,6 +269,7 @@ def test_defaults_live_in_the_configs_alone(collect_config):
     (["bench", "dagger"], "benchmarks.dagger", "DaggerConfig"),
     (["bench", "wm-fit", "--world-model", "w", "--data", "d", "--demos", "5"], "benchmarks.world_model_fit",
      "WorldModelFitConfig"),
+    (["bench", "policy-fit", "--policy", "p", "--policy", "q"], "benchmarks.policy_fit", "PolicyFitConfig"),
 ])
 def test_bench_defaults_live_in_their_configs(argv, module, config, monkeypatch):
     import importlib
@@ -279,7 +280,8 @@ def test_bench_defaults_live_in_their_configs(argv, module, config, monkeypatch)
     main(argv)
     required = {"AblationConfig": {"data": "d", "task": "hammer"},
                 "EvaluationSpeedConfig": {"policy": "p", "task": "push"},
-                "WorldModelFitConfig": {"world_model": "w", "data": "d", "demos": 5}}.get(config, {})
+                "WorldModelFitConfig": {"world_model": "w", "data": "d", "demos": 5},
+                "PolicyFitConfig": {"policies": ("p", "q")}}.get(config, {})
     assert seen["config"] == getattr(bench, config)(**required)
 
 

@@ -553,6 +553,33 @@ def test_bench_wm_fit_measures_the_trained_and_the_unseen_episodes_apart(reach_d
         run(WorldModelFitConfig(world_model=world_model, data=reach_data, demos=2))
 
 
+def test_bench_policy_fit_measures_the_trained_and_the_unseen_demonstrations_apart(reach_data, world_model, tmp_path,
+                                                                                    capsys):
+    """Each split's windows: the frames the cpu preset keeps of its episodes (counted by hand),
+    less the steps that cannot be current; the second cloud's ratio only where there is one."""
+    from benchmarks.policy_fit import PolicyFitConfig, run
+    from collectors.dataset import WindowConfig
+
+    runs = {}
+    for algo in ("d2a", "mp1"):
+        config = policy_config(algo, reach_data, tmp_path / algo, world_model=world_model if algo == "d2a" else None)
+        train_policy(dataclasses.replace(config, demos=1, eval_episodes=0))
+        runs[algo] = str(tmp_path / algo)
+    results = run(PolicyFitConfig(policies=(runs["d2a"], runs["mp1"]), windows=10_000))
+    policy = PolicyConfig(algo="d2a", **TINY)
+    window = WindowConfig(policy.horizon, policy.n_obs_steps, policy.n_action_steps)
+    overrun = max(0, window.horizon - window.n_obs_steps - window.pad_after)
+    for algo, expected_second in (("d2a", True), ("mp1", False)):
+        for split, episode in (("trained on", 0), ("unseen", 1)):
+            check = results[algo][split]
+            assert check.windows == frames_kept_by_the_cpu_preset(reach_data, [episode]) - overrun
+            assert check.intact > 0 and check.cloud_ratio > 0
+            assert (check.imagined_ratio is not None) == expected_second
+    assert "| d2a | unseen | 1 |" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="no demonstration after the first 2"):
+        run(PolicyFitConfig(policies=(runs["mp1"],), demos=2))
+
+
 @pytest.mark.parametrize("algo", ["d2a", "d2a-present", "d2a-oracle"])
 def test_the_second_cloud_takes_a_point_count_of_its_own(algo, reach_data, world_model, tmp_path):
     config = policy_config(algo, reach_data, tmp_path, world_model=world_model if algo == "d2a" else None)
