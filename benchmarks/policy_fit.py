@@ -45,20 +45,38 @@ class PolicyFitConfig:
     demos: int | None = None  # default: each policy's own count (its first episodes of each task)
     windows: int = 512  # at most this many windows per split (a seeded draw)
     seed: int = 0  # the draw of windows and of the samplers' noise
+    # "zeros": a d2a policy's world model imagines from no past actions (as at an episode's
+    # start), so the check tells how much of its fit comes through the actions the model reads
+    past_actions: str = "recorded"
 
     def __post_init__(self) -> None:
         if not self.policies:
             raise ValueError("name at least one policy")
+        if self.past_actions not in ("recorded", "zeros"):
+            raise ValueError(f"past_actions must be 'recorded' or 'zeros', not {self.past_actions!r}")
         if self.windows < 2 or (self.demos is not None and self.demos < 1):
             raise ValueError(f"windows must be at least 2 and demos at least 1, got {self.windows} and {self.demos}")
 
 
-def _frames(dataset: DemoDataset, policy: Policy, payload: dict[str, Any]) -> TensorDict:
-    """The frames the policy reads, as in its training: its second cloud made the same way, the
-    frames past each episode's first success trimmed the same way."""
+class _StillImaginer:
+    """An imaginer that reads no past actions: zeros, as after a reset."""
+
+    def __init__(self, imaginer: Imaginer) -> None:
+        self.imaginer, self.config, self.grid = imaginer, imaginer.config, imaginer.grid
+
+    def __call__(self, cloud: torch.Tensor, past_actions: torch.Tensor) -> Any:
+        return self.imaginer(cloud, torch.zeros_like(torch.as_tensor(past_actions)))
+
+
+def _frames(dataset: DemoDataset, policy: Policy, payload: dict[str, Any], past_actions: str) -> TensorDict:
+    """The frames the policy reads, as in its training: its second cloud made the same way
+    (unless ``past_actions`` is "zeros"), the frames past each episode's first success trimmed
+    the same way."""
     config = policy.config
     imaginer = (Imaginer.from_checkpoint(payload["world_model"], num_points=config.imagined_point_count,
                                          output=config.variant.imagined) if payload.get("world_model") else None)
+    if imaginer is not None and past_actions == "zeros":
+        imaginer = _StillImaginer(imaginer)
     frames = training_frames(dataset, config, imaginer, progress=False)
     keep_after = payload["train_config"].get("trim_after_success", -1)
     return frames[frames_up_to_success(frames, keep_after)] if keep_after >= 0 else frames
@@ -93,7 +111,7 @@ def run(config: PolicyFitConfig) -> dict[str, dict[str, Reliance]]:
         recipe = json.dumps([data, payload["policy_config"], payload.get("world_model"),
                              payload["train_config"].get("trim_after_success", -1)], sort_keys=True, default=str)
         if recipe not in made:
-            made[recipe] = _frames(dataset, policy, payload)
+            made[recipe] = _frames(dataset, policy, payload, config.past_actions)
         frames = made[recipe]
         name = Path(path).name
         results[name] = {}

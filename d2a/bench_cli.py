@@ -181,7 +181,7 @@ def cmd_bench_policy_fit(args: argparse.Namespace) -> None:
     from benchmarks.policy_fit import PolicyFitConfig, run
 
     run(replace_given(PolicyFitConfig(policies=tuple(args.policy)), data=args.data, demos=args.demos,
-                       windows=args.windows))
+                       windows=args.windows, past_actions=args.past_actions))
 
 
 def cmd_bench_success(args: argparse.Namespace) -> None:
@@ -443,6 +443,9 @@ def add_bench_commands(commands: Any) -> None:
                                   help="the policies trained on the first N of each task (default: each one's own)")
     bench_policy_fit.add_argument("--windows", type=POSITIVE, default=None,
                                   help="windows per split, at most (default 512)")
+    bench_policy_fit.add_argument("--past-actions", choices=("recorded", "zeros"), default=None,
+                                  help="what a d2a policy's world model imagines from: the recorded past actions "
+                                       "(default, as in training) or none (zeros, as after a reset)")
     bench_policy_fit.set_defaults(func=cmd_bench_policy_fit)
 
     bench_success = bench.add_parser("success", help="success rates of d2a / d2a-no-cfg / mp1 / dp3, both protocols")

@@ -580,6 +580,33 @@ def test_bench_policy_fit_measures_the_trained_and_the_unseen_demonstrations_apa
         run(PolicyFitConfig(policies=(runs["mp1"],), demos=2))
 
 
+def test_bench_policy_fit_can_imagine_from_no_past_actions(reach_data, world_model, tmp_path, monkeypatch):
+    """The world model is asked with the recorded histories (some moving) or, with
+    ``past_actions="zeros"``, with zeros at every row."""
+    import benchmarks.policy_fit as policy_fit
+    from d2a_agents.world_model.imagine import Imaginer
+
+    config = policy_config("d2a", reach_data, tmp_path, world_model=world_model)
+    train_policy(dataclasses.replace(config, eval_episodes=0))
+    real = Imaginer.from_checkpoint(world_model)
+    asked = []
+
+    class Recording:  # answers the present cloud, keeps the histories it was asked with
+        config, grid = real.config, real.grid
+
+        def __call__(self, cloud, past_actions):
+            asked.append(torch.as_tensor(past_actions).abs().sum().item())
+            return np.asarray(cloud)[:64, :3]
+
+    monkeypatch.setattr(policy_fit.Imaginer, "from_checkpoint", lambda *args, **kwargs: Recording())
+    policy, payload = policy_fit.load_policy(tmp_path)
+    rows = len(DemoDataset.open(reach_data).frames())
+    for past_actions, moving in (("recorded", True), ("zeros", False)):
+        asked.clear()
+        policy_fit._frames(DemoDataset.open(reach_data), policy, payload, past_actions)
+        assert len(asked) == rows and any(total > 0 for total in asked) == moving
+
+
 @pytest.mark.parametrize("algo", ["d2a", "d2a-present", "d2a-oracle"])
 def test_the_second_cloud_takes_a_point_count_of_its_own(algo, reach_data, world_model, tmp_path):
     config = policy_config(algo, reach_data, tmp_path, world_model=world_model if algo == "d2a" else None)
