@@ -249,7 +249,7 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
 
 def _world_model(config: SuccessBenchConfig, task: str, data: Path, device: str = "cpu") -> Path:
     path = (Path(config.workdir) / "world_models"
-            / f"{task}{_demos_tag(config)}{_demonstrations_tag(config)}{_rollouts_tag(config)}.pt")
+            / f"{task}{_demos_tag(config)}{_demonstrations_tag(config)}{_world_model_tag(config)}.pt")
     _when_free(lambda: train_world_model(TrainWorldModelConfig(
         data=str(data), out=str(path), model=config.world_model, steps=config.world_model_steps, demos=config.demos,
         with_rollouts=config.wm_rollouts > 0,
@@ -331,14 +331,17 @@ def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> s
     of 5 and of 15 evaluations, on fixed or fresh layouts, of one budget or another, share a
     workdir (its data and world models) without one being read back as another."""
     fresh = "_fresh" if config.eval_layouts == "fresh" else ""
-    rollouts = _rollouts_tag(config) if uses_imagination(algo) else ""
+    world_model = _world_model_tag(config) if uses_imagination(algo) else ""
     draws = f"_draws{config.action_draws}" if config.action_draws > 1 else ""
     return (f"{task}_{algo}_s{seed}_e{config.evaluations}{fresh}{_demos_tag(config)}"
-            f"{_demonstrations_tag(config)}{draws}{rollouts}{_preset_tag(config.policy)}")
+            f"{_demonstrations_tag(config)}{draws}{world_model}{_preset_tag(config.policy)}")
 
 
-def _rollouts_tag(config: SuccessBenchConfig) -> str:
-    return f"_wmr{config.wm_rollouts}n{config.rollout_noise:g}" if config.wm_rollouts else ""
+def _world_model_tag(config: SuccessBenchConfig) -> str:
+    """What sets the world model apart from the grid's own: the rollouts it also trained on
+    (``_wmr<N>n<noise>``), no past actions read (``_wmnoact``)."""
+    rollouts = f"_wmr{config.wm_rollouts}n{config.rollout_noise:g}" if config.wm_rollouts else ""
+    return rollouts + ("" if config.world_model.reads_actions else "_wmnoact")
 
 
 def _demonstrations_tag(config: SuccessBenchConfig) -> str:

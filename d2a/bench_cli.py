@@ -44,12 +44,15 @@ def add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: str
 
 
 def add_world_model_data_options(parser: argparse.ArgumentParser) -> None:
-    """What the world model trains on beyond the cell's demonstrations (the policy never sees it);
-    the imagining cells, their data and world models are named apart, the others are shared."""
+    """What the world model trains on beyond the cell's demonstrations (the policy never sees it),
+    and whether it reads past actions; the imagining cells, their data and world models are
+    named apart, the others are shared."""
     parser.add_argument("--wm-rollouts", type=NON_NEGATIVE, default=None,
                         help="noisy expert rollouts per task the world model also trains on (default 0)")
     parser.add_argument("--rollout-noise", type=NON_NEGATIVE_FLOAT, default=None,
                         help="std of their action noise (default 0.3)")
+    parser.add_argument("--wm-without-actions", action="store_true",
+                        help="the world model reads no past actions: it imagines from the scene alone")
 
 
 def add_cell_reading_options(parser: argparse.ArgumentParser) -> None:
@@ -196,6 +199,8 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
 
         # cpu: d2a train-wm's cpu preset (128x128x32, point-scatter); demo: the demo's 32x32x8 Conv3d
         world_model = CPU_PRESET if args.world_model == "cpu" else WorldModelConfig(resolution=(32, 32, 8))
+    if args.wm_without_actions:
+        world_model = dataclasses.replace(world_model or base.world_model, reads_actions=False)
     run(replace_given(
         base, tasks=tuple(args.task) if args.task else None,
         algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
@@ -212,7 +217,9 @@ def grid_cells(base: Any, args: argparse.Namespace) -> Any:
     return replace_given(with_policy_options(base, args), workdir=args.workdir, threads=args.threads,
                           ray_address=args.ray, evaluations=args.evaluations, eval_layouts=args.eval_layouts,
                           workers=args.workers, shared_cells=tuple(args.shared_cells) if args.shared_cells else None,
-                          wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise)
+                          wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise,
+                          world_model=dataclasses.replace(base.world_model, reads_actions=False)
+                          if args.wm_without_actions else None)
 
 
 def cmd_bench_table1(args: argparse.Namespace) -> None:

@@ -162,6 +162,7 @@ def cmd_train_wm(args: argparse.Namespace) -> None:
     base = CPU_PRESET if args.preset == "cpu" else WorldModelConfig()
     model = replace_given(base, horizon=args.horizon, action_history=args.history, channels=args.channels,
                            feature_mode=args.feature_mode, plane_pooling=args.plane_pooling, encoder=args.encoder,
+                           reads_actions=False if args.without_actions else None,
                            resolution=tuple(args.resolution) if args.resolution else None)
     config = replace_given(
         TrainWorldModelConfig(data=args.data, out=args.out, model=model), steps=args.steps,
@@ -317,6 +318,8 @@ def build_parser() -> argparse.ArgumentParser:
     train_wm.add_argument("--resolution", type=POSITIVE, nargs=3, default=None, metavar=("X", "Y", "Z"))
     train_wm.add_argument("--horizon", type=POSITIVE, default=None, help="H, steps imagined ahead")
     train_wm.add_argument("--history", type=POSITIVE, default=None, help="past actions conditioning the model")
+    train_wm.add_argument("--without-actions", action="store_true",
+                          help="read no past actions (zeros): imagine from the scene alone")
     train_wm.add_argument("--channels", type=POSITIVE, default=None, help="feature dimension C")
     train_wm.add_argument("--feature-mode", choices=("triplane", "xy", "volume"), default=None)
     train_wm.add_argument("--plane-pooling", choices=("mean", "max"), default=None,

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 import benchmarks.success as success
-from benchmarks.success import Cell
+from benchmarks.success import Cell, cell_path
 from benchmarks.table4 import Table4Config, plan, report, run
 from d2a.cli import main
 
@@ -92,6 +94,13 @@ def test_cli_options(monkeypatch):
     main(["bench", "table4", "--demos", "2", "--wm-rollouts", "20", "--rollout-noise", "0.2"])
     cell_config = seen["config"].cell_config(2)
     assert (cell_config.wm_rollouts, cell_config.rollout_noise) == (20, 0.2)
+    main(["bench", "table4", "--demos", "2", "--wm-without-actions"])
+    cell_config = seen["config"].cell_config(2)
+    assert not cell_config.world_model.reads_actions
+    assert dataclasses.replace(cell_config.world_model, reads_actions=True) == Table4Config().bench.world_model
+    # The imagining cells (and the world model) are named apart; the others are shared.
+    assert "_wmnoact" in cell_path(cell_config, "push", "d2a", 0).name
+    assert cell_path(cell_config, "push", "mp1", 0) == cell_path(Table4Config().cell_config(2), "push", "mp1", 0)
 
 
 def test_the_plot_keeps_one_colour_per_method_and_names_every_method(tmp_path, monkeypatch):

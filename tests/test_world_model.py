@@ -4,6 +4,7 @@ end-to-end overfit of one real D2A transition."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from contextlib import contextmanager
@@ -538,6 +539,28 @@ def test_feature_modes_build_give_logits_and_film_starts_at_zero(mode, skip):
     assert not torch.allclose(model(occupancy, torch.zeros_like(actions), queries), model(occupancy, actions, queries))
     # The occupancy does matter.
     assert not torch.allclose(model(~occupancy, actions, queries), model(occupancy, actions, queries))
+
+
+@pytest.mark.parametrize("encoder", ["volume-conv", "point-scatter"])
+def test_a_model_that_reads_no_actions_imagines_the_same_whatever_they_were(encoder):
+    """With ``reads_actions=False`` a trained (non-zero) FiLM still gives one output for any
+    action history: the one a model that read zeros would give."""
+    config = WorldModelConfig(feature_mode="triplane", encoder=encoder, reads_actions=False, **SMALL_MODEL)
+    model = TriplaneWorldModel(config)
+    generator = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        model.film[-1].bias.normal_(generator=generator)
+        model.film[-1].weight.normal_(generator=generator)
+    reading = TriplaneWorldModel(dataclasses.replace(config, reads_actions=True))
+    reading.load_state_dict(model.state_dict())
+    occupancy = torch.rand(2, *config.resolution, generator=generator) < 0.1
+    queries = torch.rand(2, 9, 3, generator=generator) * 2 - 1
+    actions = torch.randn(2, 3, 4, generator=generator)
+    still = reading(occupancy, torch.zeros_like(actions), queries)
+    assert not torch.allclose(reading(occupancy, actions, queries), still)  # the weights do read actions
+    for history in (actions, -5 * actions):
+        torch.testing.assert_close(model(occupancy, history, queries), still, rtol=0, atol=0)
+    assert WorldModelConfig.from_dict({k: v for k, v in config.to_dict().items() if k != "reads_actions"}).reads_actions
 
 
 class FixedVolume(nn.Module):

@@ -44,6 +44,9 @@ class WorldModelConfig:
             dynamic IoU from 14.9 to 27.9 % on Hammer and from 22.0 to 24.3 % on Assembly.
         horizon: H, how many control steps ahead the model imagines.
         action_history: how many past actions condition the prediction.
+        reads_actions: False: the model reads zeros for the past actions, so it imagines from
+            the scene alone. A policy that reads its imagination then cannot read through it
+            the actions that led there (the expert's in training, its own when acting).
         action_dim: size of one action.
         refine_dilations: dilations of the per-plane (or volume) refinement convolutions;
             they widen the receptive field so that motion over H steps can be represented.
@@ -70,6 +73,7 @@ class WorldModelConfig:
     decoder_layers: int = 3
     occupancy_skip: bool = True
     encoder: str = "volume-conv"
+    reads_actions: bool = True
 
     def __post_init__(self) -> None:
         if self.encoder not in ENCODERS:
@@ -184,6 +188,8 @@ class TriplaneWorldModel(nn.Module):
         """
         grid = occupancy.float().unsqueeze(1)
         skip = [grid] if self.config.occupancy_skip else []
+        if not self.config.reads_actions:
+            actions = torch.zeros_like(actions)
         gamma, beta = self.film(actions.flatten(1)).chunk(2, dim=-1)
         mode = self.config.feature_mode
         if self.config.encoder == "point-scatter":
