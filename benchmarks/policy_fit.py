@@ -105,7 +105,7 @@ def run(config: PolicyFitConfig) -> dict[str, dict[str, Reliance]]:
         if demos is None:
             raise ValueError(f"{path} trained on every episode of {data}: pass the count it trained on")
         trained = [episode.index for episode in dataset.first_episodes(demos).metadata.episodes]
-        unseen = [episode.index for episode in dataset.metadata.episodes if episode.index not in set(trained)]
+        unseen = [episode.index for episode in dataset.metadata.episodes if episode.index not in trained]
         if not unseen:
             raise ValueError(f"{data} holds no demonstration after the first {demos} of each task")
         recipe = json.dumps([data, payload["policy_config"], payload.get("world_model"),
