@@ -19,6 +19,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,16 +59,6 @@ class PolicyFitConfig:
             raise ValueError(f"windows must be at least 2 and demos at least 1, got {self.windows} and {self.demos}")
 
 
-class _StillImaginer:
-    """An imaginer that reads no past actions: zeros, as after a reset."""
-
-    def __init__(self, imaginer: Imaginer) -> None:
-        self.imaginer, self.config, self.grid = imaginer, imaginer.config, imaginer.grid
-
-    def __call__(self, cloud: torch.Tensor, past_actions: torch.Tensor) -> Any:
-        return self.imaginer(cloud, torch.zeros_like(torch.as_tensor(past_actions)))
-
-
 def _frames(dataset: DemoDataset, policy: Policy, payload: dict[str, Any], past_actions: str) -> TensorDict:
     """The frames the policy reads, as in its training: its second cloud made the same way
     (unless ``past_actions`` is "zeros"), the frames past each episode's first success trimmed
@@ -75,8 +66,8 @@ def _frames(dataset: DemoDataset, policy: Policy, payload: dict[str, Any], past_
     config = policy.config
     imaginer = (Imaginer.from_checkpoint(payload["world_model"], num_points=config.imagined_point_count,
                                          output=config.variant.imagined) if payload.get("world_model") else None)
-    if imaginer is not None and past_actions == "zeros":
-        imaginer = _StillImaginer(imaginer)
+    if imaginer is not None and past_actions == "zeros":  # the model then reads zeros for them
+        imaginer.model.config = dataclasses.replace(imaginer.config, reads_actions=False)
     frames = training_frames(dataset, config, imaginer, progress=False)
     keep_after = payload["train_config"].get("trim_after_success", -1)
     return frames[frames_up_to_success(frames, keep_after)] if keep_after >= 0 else frames

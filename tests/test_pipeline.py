@@ -580,31 +580,33 @@ def test_bench_policy_fit_measures_the_trained_and_the_unseen_demonstrations_apa
         run(PolicyFitConfig(policies=(runs["mp1"],), demos=2))
 
 
-def test_bench_policy_fit_can_imagine_from_no_past_actions(reach_data, world_model, tmp_path, monkeypatch):
-    """The world model is asked with the recorded histories (some moving) or, with
-    ``past_actions="zeros"``, with zeros at every row."""
-    import benchmarks.policy_fit as policy_fit
+def test_bench_policy_fit_can_imagine_from_no_past_actions(reach_data, world_model, tmp_path):
+    """Every imagined cloud is the world model's from the recorded histories (some moving) or,
+    with ``past_actions="zeros"``, from zeros: imagined here row by row, in the same order
+    (the imaginer's sampler is seeded), by a fresh imaginer."""
+    from benchmarks.policy_fit import _frames
+    from d2a_agents.policy.agent import subsample_cloud
+    from d2a_agents.policy.checkpoints import load_policy
+    from d2a_agents.world_model.data import WorldModelTransitions
     from d2a_agents.world_model.imagine import Imaginer
+    from d2a_envs.wrappers import IMAGINED_KEY
 
     config = policy_config("d2a", reach_data, tmp_path, world_model=world_model)
     train_policy(dataclasses.replace(config, eval_episodes=0))
-    real = Imaginer.from_checkpoint(world_model)
-    asked = []
-
-    class Recording:  # answers the present cloud, keeps the histories it was asked with
-        config, grid = real.config, real.grid
-
-        def __call__(self, cloud, past_actions):
-            asked.append(torch.as_tensor(past_actions).abs().sum().item())
-            return np.asarray(cloud)[:64, :3]
-
-    monkeypatch.setattr(policy_fit.Imaginer, "from_checkpoint", lambda *args, **kwargs: Recording())
-    policy, payload = policy_fit.load_policy(tmp_path)
-    rows = len(DemoDataset.open(reach_data).frames())
-    for past_actions, moving in (("recorded", True), ("zeros", False)):
-        asked.clear()
-        policy_fit._frames(DemoDataset.open(reach_data), policy, payload, past_actions)
-        assert len(asked) == rows and any(total > 0 for total in asked) == moving
+    policy, payload = load_policy(tmp_path)
+    payload["train_config"]["trim_after_success"] = -1  # rows stay the data set's own
+    frames = DemoDataset.open(reach_data).frames()
+    count = policy.config.imagined_point_count
+    for past_actions in ("recorded", "zeros"):
+        imagined = _frames(DemoDataset.open(reach_data), policy, payload, past_actions)[IMAGINED_KEY]
+        imaginer = Imaginer.from_checkpoint(world_model, num_points=count)
+        table = WorldModelTransitions(frames, imaginer.grid, imaginer.config.horizon, imaginer.config.action_history)
+        histories = [table.past_actions(torch.tensor(row)) for row in range(len(table))]
+        assert any(history.abs().sum() > 0 for history in histories)  # zeros would change something
+        for row, history in enumerate(histories):
+            history = history if past_actions == "recorded" else torch.zeros_like(history)
+            cloud = imaginer(frames["point_cloud"][table.rows[row]], history)
+            assert torch.equal(imagined[row], subsample_cloud(torch.as_tensor(cloud), count))
 
 
 @pytest.mark.parametrize("algo", ["d2a", "d2a-present", "d2a-oracle"])
