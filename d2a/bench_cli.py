@@ -199,8 +199,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
 
         # cpu: d2a train-wm's cpu preset (128x128x32, point-scatter); demo: the demo's 32x32x8 Conv3d
         world_model = CPU_PRESET if args.world_model == "cpu" else WorldModelConfig(resolution=(32, 32, 8))
-    if args.wm_without_actions:
-        world_model = dataclasses.replace(world_model or base.world_model, reads_actions=False)
+    world_model = world_model_asked(args, world_model, base.world_model)
     run(replace_given(
         base, tasks=tuple(args.task) if args.task else None,
         algos=tuple(args.algo) if args.algo else None, seeds=tuple(args.seed) if args.seed else None,
@@ -218,8 +217,15 @@ def grid_cells(base: Any, args: argparse.Namespace) -> Any:
                           ray_address=args.ray, evaluations=args.evaluations, eval_layouts=args.eval_layouts,
                           workers=args.workers, shared_cells=tuple(args.shared_cells) if args.shared_cells else None,
                           wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise,
-                          world_model=dataclasses.replace(base.world_model, reads_actions=False)
-                          if args.wm_without_actions else None)
+                          world_model=world_model_asked(args, None, base.world_model))
+
+
+def world_model_asked(args: argparse.Namespace, chosen: Any, default: Any) -> Any:
+    """The world model settings the options ask for: ``chosen`` (None: the preset's), or with
+    ``--wm-without-actions`` ``chosen`` or else ``default`` imagining from no past actions."""
+    if not args.wm_without_actions:
+        return chosen
+    return dataclasses.replace(chosen or default, reads_actions=False)
 
 
 def cmd_bench_table1(args: argparse.Namespace) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 import benchmarks.success
@@ -316,6 +318,11 @@ def test_demos_reach_the_trainers_and_the_bench(captured):
     assert (captured["config"].policy.imagined_points, captured["config"].policy.oracle_horizon) == (256, 12)
     main(["bench", "success", "--wm-rollouts", "20", "--rollout-noise", "0.5"])
     assert (captured["config"].wm_rollouts, captured["config"].rollout_noise) == (20, 0.5)
+    main(["bench", "success", "--wm-without-actions"])
+    preset_world_model = benchmarks.success.PRESETS["cpu"].world_model
+    assert captured["config"].world_model == dataclasses.replace(preset_world_model, reads_actions=False)
+    main(["bench", "success", "--world-model", "demo", "--wm-without-actions"])
+    assert captured["config"].world_model.resolution == (32, 32, 8) and not captured["config"].world_model.reads_actions
     main(["bench", "success", "--imagined-points", "256"])
     assert captured["config"].policy.policy.imagined_points == 256 and captured["config"].policy.policy.num_points == 64
     main(["bench", "success", "--policy-points", "128", "--steps", "300", "--oracle-horizon", "8"])
