@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from d2a.cli_options import (
     ALGOS,
@@ -20,6 +20,9 @@ from d2a.cli_options import (
     replace_given,
     with_policy_options,
 )
+
+if TYPE_CHECKING:
+    from d2a_agents.world_model.triplane import WorldModelConfig
 
 
 def add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: str) -> None:
@@ -220,7 +223,8 @@ def grid_cells(base: Any, args: argparse.Namespace) -> Any:
                           world_model=world_model_asked(args, None, base.world_model))
 
 
-def world_model_asked(args: argparse.Namespace, chosen: Any, default: Any) -> Any:
+def world_model_asked(args: argparse.Namespace, chosen: WorldModelConfig | None,
+                      default: WorldModelConfig) -> WorldModelConfig | None:
     """The world model settings the options ask for: ``chosen`` (None: the preset's), or with
     ``--wm-without-actions`` ``chosen`` or else ``default`` imagining from no past actions."""
     if not args.wm_without_actions:
