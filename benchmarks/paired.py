@@ -92,6 +92,14 @@ class PairedSummary:
     pooled_control: float
     pooled_low: float  # Newcombe's hybrid score 95 % interval of the pooled difference
     pooled_high: float
+    treated_interval: tuple[float, float]  # each pooled rate's Wilson 95 % interval
+    control_interval: tuple[float, float]
+
+    @property
+    def intervals_apart(self) -> bool:
+        """Whether the two pooled rates' Wilson intervals share no point."""
+        (treated_low, treated_high), (control_low, control_high) = self.treated_interval, self.control_interval
+        return treated_low > control_high or control_low > treated_high
 
 
 def cell_files(directory: str | Path) -> list[Path]:
@@ -222,6 +230,7 @@ def summarize_pairs(pairs: list[Pair]) -> PairedSummary:
         losses=sum(d < 0 for d in differences), mean=mean, low=mean - half, high=mean + half,
         pooled_treated=wins[0] / episodes[0], pooled_control=wins[1] / episodes[1],
         pooled_low=pooled_low, pooled_high=pooled_high,
+        treated_interval=wilson_interval(wins[0], episodes[0]), control_interval=wilson_interval(wins[1], episodes[1]),
     )
 
 
@@ -261,12 +270,16 @@ def _wins(cell: Cell) -> str:
 
 
 def summary_sentence(pairs: list[Pair], algo: str, control: str) -> str:
-    """One sentence: how many pairs, wins / ties / losses, the mean difference over pairs and
-    the pooled episodes' difference, each with its 95 % interval."""
+    """One sentence: how many pairs, wins / ties / losses, the mean difference over pairs, the
+    pooled episodes' rates (whether their intervals overlap) and difference, each with its 95 %
+    interval."""
     summary, a = summarize_pairs(pairs), f"`{algo}`"
     interval = (f"[{100 * summary.low:+.1f}, {100 * summary.high:+.1f}] (Student t over pairs)"
                 if summary.pairs > 1 else "(one pair: no interval)")
-    pooled = (f"{100 * summary.pooled_treated:.1f} % against {100 * summary.pooled_control:.1f} %, difference "
+    (treated_low, treated_high), (control_low, control_high) = summary.treated_interval, summary.control_interval
+    pooled = (f"{100 * summary.pooled_treated:.1f} % [{100 * treated_low:.1f}-{100 * treated_high:.1f}] against "
+              f"{100 * summary.pooled_control:.1f} % [{100 * control_low:.1f}-{100 * control_high:.1f}] (Wilson, "
+              f"{'apart' if summary.intervals_apart else 'overlapping'}), difference "
               f"{100 * (summary.pooled_treated - summary.pooled_control):+.1f} "
               f"[{100 * summary.pooled_low:+.1f}, {100 * summary.pooled_high:+.1f}] (Newcombe)")
     plural = "s" if summary.pairs != 1 else ""

@@ -120,6 +120,19 @@ def test_summary_over_pairs_against_a_hand_computation(tmp_path):
     assert (summary.low, summary.high) == pytest.approx((0.2 / 3 - half, 0.2 / 3 + half))
     assert (summary.pooled_treated, summary.pooled_control) == pytest.approx((210 / 300, 190 / 300))
     assert (summary.pooled_low, summary.pooled_high) == pytest.approx(newcombe_interval(210, 300, 190, 300))
+    # Wilson intervals by the textbook formula (z = 1.96): 210/300 [64.59-74.91], 190/300 [57.74-68.59].
+    assert summary.treated_interval == pytest.approx((0.6459, 0.7491), abs=1e-4)
+    assert summary.control_interval == pytest.approx((0.5774, 0.6859), abs=1e-4)
+    assert not summary.intervals_apart
+
+
+def test_pooled_intervals_apart_only_when_they_share_no_point(tmp_path):
+    _write(tmp_path, "push_d2a_s0_e5", 70)
+    _write(tmp_path, "push_d2a-present_s0_e5", 50)  # Wilson [60.4-78.1] against [40.4-59.6]
+    _write(tmp_path, "push_mp1_s0_e5", 60)  # [50.2-69.1]: overlaps 70's
+    assert summarize_pairs(find_pairs(cell_files(tmp_path), "d2a", "d2a-present")).intervals_apart
+    assert summarize_pairs(find_pairs(cell_files(tmp_path), "mp1", "d2a-present")).intervals_apart is False
+    assert summarize_pairs(find_pairs(cell_files(tmp_path), "d2a", "mp1")).intervals_apart is False
 
 
 def test_cli_prints_the_pairs_and_draws_them(tmp_path, capsys):
@@ -173,8 +186,9 @@ def test_a_grid_report_closes_with_its_pairs():
     assert [(pair.name, pair.difference) for pair in pairs] == [("push_d5_s0", pytest.approx(0.1))]
     text = table4.report(cells, table4.Table4Config())
     assert text.endswith("1 pair of `d2a` and `d2a-present`: `d2a` ahead in 1, level in 0, behind in 0; mean "
-                         "difference +10.0 points (one pair: no interval); pooled episodes 70.0 % against 60.0 %, "
-                         "difference +10.0 [-3.2, +22.7] (Newcombe).")
+                         "difference +10.0 points (one pair: no interval); pooled episodes 70.0 % [60.4-78.1] "
+                         "against 60.0 % [50.2-69.1] (Wilson, overlapping), difference +10.0 [-3.2, +22.7] "
+                         "(Newcombe).")
     assert grid_note([cell("mp1", 0, 5, 50)]) == []  # no pair, no note
 
 
@@ -194,8 +208,9 @@ def test_the_reference_method_stands_beside_each_pair_and_is_compared_over_those
     # Only seed 0 has an mp1 cell: 70/100 against 50/100, +20 points, Newcombe's interval around it.
     low, high = newcombe_interval(70, 100, 50, 100)
     assert (f"Against `mp1` on the pairs with its cell: 1 pair of `d2a` and `mp1`: `d2a` ahead in 1, level in 0, "
-            f"behind in 0; mean difference +20.0 points (one pair: no interval); pooled episodes 70.0 % against "
-            f"50.0 %, difference +20.0 [{100 * low:+.1f}, {100 * high:+.1f}] (Newcombe).") in out
+            f"behind in 0; mean difference +20.0 points (one pair: no interval); pooled episodes 70.0 % [60.4-78.1] "
+            f"against 50.0 % [40.4-59.6] (Wilson, apart), difference +20.0 [{100 * low:+.1f}, {100 * high:+.1f}] "
+            f"(Newcombe).") in out
     page = report_file.read_text()
     assert page.startswith("# `d2a` against `d2a-present`, cell by cell")
     assert f"Written by `d2a bench paired --results {tmp_path} --algo d2a --control d2a-present --reference mp1 " \

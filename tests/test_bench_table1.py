@@ -137,7 +137,8 @@ def test_pairs_are_summarised_group_by_group_against_the_control_and_mp1():
     assert "2 pairs of `d2a` and `d2a-present`: `d2a` ahead in 1, level in 1, behind in 0; mean difference +5.0" \
         in lines[0]
     assert "1 pair of `d2a` and `mp1`: `d2a` ahead in 0, level in 0, behind in 1; mean difference -10.0" in lines[1]
-    assert "1 pair of `d2a` and `mp1`" in lines[2] and "pooled episodes 90.0 % against 100.0 %" in lines[2]
+    assert "1 pair of `d2a` and `mp1`" in lines[2]
+    assert "pooled episodes 90.0 % [82.6-94.5] against 100.0 % [96.3-100.0]" in lines[2]
     assert paired_by_group([_cell("push", "mp1", 0, 40)]) == []
 
 
