@@ -30,4 +30,5 @@ def test_pipeline_notebook_executes(tmp_path):
 def test_results_notebook_reads_the_shipped_cells():
     text, images = _execute("results.ipynb", NOTEBOOKS)
     assert "paper protocol" in text and "very_hard" in text and "pairs of" in text
+    assert text.count("of `d2a` and `d2a-present`") >= 2 and "(Wilson, " in text  # every pair, then Push at 2
     assert images == 3  # Table I, Table IV, the paired differences
