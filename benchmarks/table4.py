@@ -23,6 +23,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,6 +45,7 @@ from d2a_agents.policy.agent import ALGORITHMS
 from d2a_agents.success_plot import save_figure
 
 TASKS = ("lever-pull", "assembly", "push", "stick-pull")
+ALGOS = ("mp1", "d2a", "d2a-present")  # the grid's methods; the reports' first columns
 DEMO_COUNTS = (5, 1, 2, 10, 20)  # the grid's order: 5 first, where the paper claims imagination helps most
 # The paper's Table IV: demonstrations -> task -> (MP1, Ours) success %.
 PAPER_TABLE4: dict[int, dict[str, tuple[int, int]]] = {
@@ -63,7 +65,7 @@ class Table4Config:
 
     tasks: tuple[str, ...] = TASKS
     demos: tuple[int, ...] = DEMO_COUNTS
-    algos: tuple[str, ...] = ("mp1", "d2a", "d2a-present")
+    algos: tuple[str, ...] = ALGOS
     seeds: tuple[int, ...] = (0, 1, 2)
     pool: int = max(DEMO_COUNTS)  # demonstrations collected per task, whatever counts a run asks for
     results: str = "docs/table4"  # cells/ (kept), table4.md, cells.csv, tasks.md, table4.png
@@ -85,6 +87,20 @@ def plan(config: Table4Config) -> list[tuple[int, str, str, int]]:
             for seed in config.seeds for algo in config.algos]
 
 
+def in_report_order(names: Iterable[str], order: Iterable[str]) -> tuple[str, ...]:
+    """``names`` once each in ``order``'s order (any other after, as met): a report's columns
+    follow the cells, not the order a run's options named them, so every run writes the same."""
+    rank = {name: index for index, name in enumerate(dict.fromkeys(order))}
+    return tuple(sorted(dict.fromkeys(names), key=lambda name: rank.get(name, len(rank))))
+
+
+def columns(cells: list[Cell], config: Table4Config) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The report's tasks and methods: ``config``'s and any a cell holds, in the paper's task
+    order and the grid's method order."""
+    return (in_report_order([*config.tasks, *(cell.task for cell in cells)], TASKS),
+            in_report_order([*config.algos, *(cell.algo for cell in cells)], (*ALGOS, *ALGORITHMS)))
+
+
 def summaries(cells: list[Cell]) -> dict[tuple[int, str, str], Summary]:
     """Per (demos, task, algo): both protocols over the seeds (honest pooled, with its interval)."""
     return {(demos, task, algo): row for demos in sorted({cell.demos for cell in cells})
@@ -95,7 +111,7 @@ def report(cells: list[Cell], config: Table4Config) -> str:
     """Markdown in the paper's layout, once per protocol: per count and task, the methods'
     success (mean over seeds; the honest one pooled) and the paper's MP1 / Ours."""
     rows = summaries(cells)
-    algos = list(dict.fromkeys([*config.algos, *(cell.algo for cell in cells)]))  # stable columns, then any other
+    tasks, algos = columns(cells, config)
     bench = config.cell_config(max(config.demos))
     lines = [
         f"Success (%), the paper's Table IV tasks; nested sets of the first N of {config.pool} demonstrations per "
@@ -107,11 +123,11 @@ def report(cells: list[Cell], config: Table4Config) -> str:
         "measured.",
     ]
     for protocol in ("honest", "paper"):
-        lines += ["", f"{protocol.capitalize()} protocol:", "", "| demos | " + " | ".join(config.tasks) + " |",
-                  "| --- | " + " | ".join("---" for _ in config.tasks) + " |"]
+        lines += ["", f"{protocol.capitalize()} protocol:", "", "| demos | " + " | ".join(tasks) + " |",
+                  "| --- | " + " | ".join("---" for _ in tasks) + " |"]
         for demos in sorted(config.demos):
             entries = []
-            for task in config.tasks:
+            for task in tasks:
                 figures = [rows.get((demos, task, algo)) for algo in algos]
                 measured = (" / ".join("-" if row is None else f"{100 * getattr(row, protocol):.0f}" for row in figures)
                             + f" ({_seed_counts(figures)})") if any(figures) else "-"
@@ -150,10 +166,10 @@ def plot(cells: list[Cell], config: Table4Config, path: str | Path) -> Path:
     import matplotlib.pyplot as plt
 
     rows = summaries(cells)
-    algos = list(dict.fromkeys(cell.algo for cell in cells))
+    tasks, algos = columns(cells, dataclasses.replace(config, algos=()))  # the plot: measured methods only
     counts = sorted(config.demos)
-    fig, axes = plt.subplots(1, len(config.tasks), figsize=(3.2 * len(config.tasks), 3.2), sharey=True, squeeze=False)
-    for ax, task in zip(axes[0], config.tasks, strict=True):
+    fig, axes = plt.subplots(1, len(tasks), figsize=(3.2 * len(tasks), 3.2), sharey=True, squeeze=False)
+    for ax, task in zip(axes[0], tasks, strict=True):
         for index, algo in enumerate(algos):
             points = [(demos, rows[demos, task, algo]) for demos in counts if (demos, task, algo) in rows]
             if not points:
@@ -178,12 +194,14 @@ def plot(cells: list[Cell], config: Table4Config, path: str | Path) -> Path:
 
 
 def reported(config: Table4Config, max_seed: int = 10) -> Table4Config:
-    """``config`` widened to what its report shows: every demonstration count, method and seed
-    (below ``max_seed``) of its tasks, so a run of one count or method reports the others' cells."""
+    """``config`` widened to what its report shows: every demonstration count, Table IV task,
+    method and seed (below ``max_seed``), in the report's order, so a run of one count, task or
+    method reports the others' cells and writes the same files as a run of the whole grid."""
     counts = {*config.demos, *(demos for demos in DEMO_COUNTS if demos <= config.pool)}
     return dataclasses.replace(config, demos=tuple(sorted(counts)),
-                               algos=tuple(dict.fromkeys((*config.algos, *ALGORITHMS))),
-                               seeds=tuple(dict.fromkeys((*config.seeds, *range(max_seed)))))
+                               tasks=in_report_order((*config.tasks, *TASKS), TASKS),
+                               algos=in_report_order((*config.algos, *ALGORITHMS), (*ALGOS, *ALGORITHMS)),
+                               seeds=tuple(sorted({*config.seeds, *range(max_seed)})))
 
 
 def finished_cells(config: Table4Config) -> list[Cell]:
@@ -206,7 +224,7 @@ def write_report(cells: list[Cell], config: Table4Config) -> str:
 
 def run(config: Table4Config = Table4Config(), report_only: bool = False) -> list[Cell]:
     """Run the grid's missing cells count by count (unless ``report_only``), then print and
-    write the report of every finished cell of its tasks and the CPU time the grid's cells
+    write the report of every finished cell (its tasks' and the Table IV tasks') and the CPU time the grid's cells
     took; returns the grid's cells."""
     if not report_only:
         for demos in config.demos:
@@ -214,7 +232,9 @@ def run(config: Table4Config = Table4Config(), report_only: bool = False) -> lis
             run_grid(config.cell_config(demos), grid)
     cells = finished_cells(reported(config))
     counts = tuple(sorted({cell.demos for cell in cells} | set(config.demos)))
-    print(write_report(cells, dataclasses.replace(config, demos=counts)))  # its methods first, then any other
+    # The measured tasks and methods once any cell is (so every run writes the same files), else the run's.
+    shown = dataclasses.replace(config, demos=counts, **(dict(tasks=(), algos=()) if cells else {}))
+    print(write_report(cells, shown))
     grid = plan(config)
     planned = set(grid)
     in_grid = [cell for cell in cells if (cell.demos, cell.task, cell.algo, cell.seed) in planned]

@@ -68,8 +68,27 @@ def test_a_run_of_one_count_and_method_reports_every_finished_cell(tmp_path, cap
     assert [(cell.algo, cell.demos) for cell in cells] == [("cp", 10)]
     assert "1 of 1 cells finished" in capsys.readouterr().out
     text = (tmp_path / "table4.md").read_text()
-    assert _row(text, "honest", 5)[0] == "- / 30 (1) [paper 32 / 50]"  # columns: `cp`, then `mp1`
-    assert _row(text, "honest", 10)[0] == "80 / - (1) [paper 74 / 85]"
+    assert _row(text, "honest", 5)[0] == "30 / - (1) [paper 32 / 50]"  # columns: `mp1`, then `cp`
+    assert _row(text, "honest", 10)[0] == "- / 80 (1) [paper 74 / 85]"
+
+
+def test_every_run_writes_the_same_report_whatever_its_options_order(tmp_path, capsys):
+    """Two runs over the same stored cells, one naming a task and its methods in another order,
+    write byte-identical reports: the measured tasks and methods, in the paper's and the grid's order."""
+    wider = Table4Config(results=str(tmp_path))
+    stored = (("push", "d2a", 3, 31), ("push", "mp1", 0, 13), ("lever-pull", "d2a-present", 0, 40))
+    for task, algo, seed, wins in stored:
+        success._store(wider.cell_config(2), _cell(task, algo, seed, 2, wins))
+    written = []
+    for config in (Table4Config(demos=(2,), results=str(tmp_path)),
+                   Table4Config(demos=(2,), tasks=("push",), algos=("d2a-present", "d2a", "mp1"), seeds=(4, 3),
+                                results=str(tmp_path))):
+        run(config, report_only=True)
+        written.append({name: (tmp_path / name).read_text() for name in ("table4.md", "cells.csv", "tasks.md")})
+    assert written[0] == written[1]
+    assert "Each entry: `mp1` / `d2a` / `d2a-present`" in written[1]["table4.md"]
+    assert _row(written[1]["table4.md"], "honest", 2) == ["- / - / 40 (1) [paper 18 / 26]",
+                                                         "13 / 31 / - (1) [paper 22 / 35]"]  # measured tasks only
 
 
 def test_counts_beyond_the_pool_are_refused():
@@ -109,15 +128,16 @@ def test_the_plot_keeps_one_colour_per_method_and_names_every_method(tmp_path, m
 
     figures = []
     monkeypatch.setattr(table4, "save_figure", lambda figure, path: figures.append(figure) or path)
-    cells = [_cell("push", "mp1", 0, 5, 30), _cell("push", "d2a", 0, 5, 50), _cell("lever-pull", "d2a", 0, 5, 70)]
+    cells = [_cell("lever-pull", "mp1", 0, 5, 30), _cell("lever-pull", "d2a", 0, 5, 50), _cell("push", "d2a", 0, 5, 70)]
     table4.plot(cells, Table4Config(tasks=("push", "lever-pull"), demos=(5,)), tmp_path / "t4.png")
-    push, lever = figures[0].axes
+    lever, push = figures[0].axes  # the paper's task order, whatever the config's
     colour = {ax: {line.get_label(): line.get_color() for line in ax.get_lines()} for ax in (push, lever)}
-    assert colour[push]["d2a"] == colour[lever]["d2a"] != colour[push]["mp1"]
-    assert "mp1" not in colour[lever]
-    assert [text.get_text() for text in lever.get_legend().get_texts()] == ["mp1", "d2a", "paper MP1", "paper Ours"]
+    assert colour[push]["d2a"] == colour[lever]["d2a"] != colour[lever]["mp1"]
+    assert "mp1" not in colour[push]
+    # The legend (last panel) names every method, the one missing there too.
+    assert [text.get_text() for text in push.get_legend().get_texts()] == ["mp1", "d2a", "paper MP1", "paper Ours"]
     # Methods stand side by side around the count, in their order.
-    assert push.get_lines()[0].get_xdata()[0] < 5 < push.get_lines()[1].get_xdata()[0]
+    assert lever.get_lines()[0].get_xdata()[0] < 5 < lever.get_lines()[1].get_xdata()[0]
 
 
 def test_another_grids_cells_on_the_same_demonstrations_are_copied_not_rerun(tmp_path, capsys):
