@@ -224,8 +224,8 @@ def write_report(cells: list[Cell], config: Table4Config) -> str:
 
 def run(config: Table4Config = Table4Config(), report_only: bool = False) -> list[Cell]:
     """Run the grid's missing cells count by count (unless ``report_only``), then print and
-    write the report of every finished cell (its tasks' and the Table IV tasks') and the CPU time the grid's cells
-    took; returns the grid's cells."""
+    write the report of every finished cell (its tasks' and the Table IV tasks') and the CPU
+    time the grid's cells took; returns the grid's cells."""
     if not report_only:
         for demos in config.demos:
             grid = [(task, algo, seed) for count, task, algo, seed in plan(config) if count == demos]
