@@ -45,7 +45,8 @@ from d2a_agents.policy.agent import ALGORITHMS
 from d2a_agents.success_plot import save_figure
 
 TASKS = ("lever-pull", "assembly", "push", "stick-pull")
-ALGOS = ("mp1", "d2a", "d2a-present")  # the grid's methods; the reports' first columns
+ALGOS = ("mp1", "d2a", "d2a-present")  # the grid's methods
+METHOD_ORDER = (*ALGOS, *ALGORITHMS)  # the reports' columns: the grid's methods first, then the toolkit's order
 DEMO_COUNTS = (5, 1, 2, 10, 20)  # the grid's order: 5 first, where the paper claims imagination helps most
 # The paper's Table IV: demonstrations -> task -> (MP1, Ours) success %.
 PAPER_TABLE4: dict[int, dict[str, tuple[int, int]]] = {
@@ -98,7 +99,7 @@ def columns(cells: list[Cell], config: Table4Config) -> tuple[tuple[str, ...], t
     """The report's tasks and methods: ``config``'s and any a cell holds, in the paper's task
     order and the grid's method order."""
     return (in_report_order([*config.tasks, *(cell.task for cell in cells)], TASKS),
-            in_report_order([*config.algos, *(cell.algo for cell in cells)], (*ALGOS, *ALGORITHMS)))
+            in_report_order([*config.algos, *(cell.algo for cell in cells)], METHOD_ORDER))
 
 
 def summaries(cells: list[Cell]) -> dict[tuple[int, str, str], Summary]:
@@ -200,7 +201,7 @@ def reported(config: Table4Config, max_seed: int = 10) -> Table4Config:
     counts = {*config.demos, *(demos for demos in DEMO_COUNTS if demos <= config.pool)}
     return dataclasses.replace(config, demos=tuple(sorted(counts)),
                                tasks=in_report_order((*config.tasks, *TASKS), TASKS),
-                               algos=in_report_order((*config.algos, *ALGORITHMS), (*ALGOS, *ALGORITHMS)),
+                               algos=in_report_order((*config.algos, *ALGORITHMS), METHOD_ORDER),
                                seeds=tuple(sorted({*config.seeds, *range(max_seed)})))
 
 
@@ -232,8 +233,9 @@ def run(config: Table4Config = Table4Config(), report_only: bool = False) -> lis
             run_grid(config.cell_config(demos), grid)
     cells = finished_cells(reported(config))
     counts = tuple(sorted({cell.demos for cell in cells} | set(config.demos)))
-    # The measured tasks and methods once any cell is (so every run writes the same files), else the run's.
-    shown = dataclasses.replace(config, demos=counts, **(dict(tasks=(), algos=()) if cells else {}))
+    shown = dataclasses.replace(config, demos=counts)
+    if cells:  # the measured tasks and methods alone, so every run writes the same files
+        shown = dataclasses.replace(shown, tasks=(), algos=())
     print(write_report(cells, shown))
     grid = plan(config)
     planned = set(grid)
