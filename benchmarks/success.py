@@ -12,7 +12,9 @@ Every finished (task, variant, seed) is stored as ``cells/<task>_<algo>_s<seed>_
 ``_d<K>`` for K demonstrations other than 10, and a tag for any policy preset other than
 ``cpu``, so runs with other counts or budgets share the workdir's data and world models); a
 rerun skips finished cells, completes a collection cut short and resumes an interrupted
-training from its checkpoint, so a long run can be killed and restarted. Demonstrations
+training from its checkpoint and an interrupted final evaluation from its last finished
+episode (``final_evaluation.jsonl`` in the run directory), so a long run can be killed and
+restarted. Demonstrations
 collected with other env settings are refused, not reused. ``cells`` may name another directory
 for the cell files (for example one kept under version control, while data and checkpoints stay
 in the workdir).
@@ -80,6 +82,7 @@ PAPER_REFERENCE = {
 
 
 DEFAULT_DEMOS = 10  # the paper's Table I count; cells of another count carry it in their names
+FINAL_JOURNAL = "final_evaluation.jsonl"  # in the run directory: the final evaluation's finished episodes
 ROLLOUT_SEED = 50_000  # first layout of the world model's rollouts: apart from demonstrations and evaluations
 
 
@@ -317,12 +320,14 @@ def run_cell(
     if config.final_episodes:
         final = evaluate_checkpoint(checkpoint, task, config.final_episodes, config.final_seed,
                                     workers=workers, end_on_success=True, progress=train.progress,
-                                    acting=Acting(action_draws=config.action_draws))
-        wins, episodes = sum(final.successes), final.episodes
+                                    acting=Acting(action_draws=config.action_draws),
+                                    journal=Path(train.out) / FINAL_JOURNAL)
+        wins, episodes, final_seconds = sum(final.successes), final.episodes, final.seconds
     else:
         wins, episodes = round(history[-1].success_rate * history[-1].episodes), history[-1].episodes
+        final_seconds = time.perf_counter() - started - call_seconds
     return Cell(task, algo, seed, [point.success_rate for point in history], wins, episodes, train_seconds,
-                time.perf_counter() - started - call_seconds, config.demos, checks[-1])
+                final_seconds, config.demos, checks[-1])
 
 
 def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> str:

@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 import d2a_envs
 from collectors.envs import make_torchrl_env
+from collectors.episode_journal import EpisodeJournal, EpisodeRecord
 from collectors.ray_jobs import JobsLost, Lost, as_completed
 
 
@@ -96,15 +97,6 @@ def _make_eval_env(task: str, env_kwargs: dict[str, Any], seed: int, end_on_succ
     return env
 
 
-@dataclass
-class _Episode:
-    """Running totals of one episode while its steps arrive."""
-
-    reward: float = 0.0
-    length: int = 0
-    success_step: int | None = None
-
-
 class _EpisodeTally:
     """Turns collector batches into per-episode results, keeping only the wanted episode seeds.
 
@@ -113,10 +105,12 @@ class _EpisodeTally:
     its share change the result.
     """
 
-    def __init__(self, wanted: Sequence[Sequence[int]]) -> None:
+    def __init__(self, wanted: Sequence[Sequence[int]],
+                 on_finish: Callable[[int, EpisodeRecord], None] | None = None) -> None:
         self.wanted = [set(seeds) for seeds in wanted]  # per worker
-        self.running: list[dict[int, _Episode]] = [{} for _ in wanted]
-        self.finished: dict[int, _Episode] = {}
+        self.running: list[dict[int, EpisodeRecord]] = [{} for _ in wanted]
+        self.finished: dict[int, EpisodeRecord] = {}
+        self.on_finish = on_finish  # called with each episode as it finishes
 
     @property
     def complete(self) -> bool:
@@ -142,7 +136,7 @@ class _EpisodeTally:
                 missing = sorted(self.wanted[worker] - self.finished.keys())
                 raise RuntimeError(f"worker {worker} reached episode seed {seed} without finishing {missing}")
             if seed in self.wanted[worker] and seed not in self.finished:
-                episode = self.running[worker].setdefault(seed, _Episode())
+                episode = self.running[worker].setdefault(seed, EpisodeRecord())
                 hits = successes[start:stop].nonzero()
                 if episode.success_step is None and len(hits):
                     episode.success_step = episode.length + int(hits[0]) + 1
@@ -150,6 +144,8 @@ class _EpisodeTally:
                 episode.length += stop - start
                 if dones[stop - 1]:
                     self.finished[seed] = self.running[worker].pop(seed)
+                    if self.on_finish is not None:
+                        self.on_finish(seed, self.finished[seed])
             start = stop
 
 
@@ -176,6 +172,7 @@ def evaluate(
     end_on_success: bool = False,
     ray_address: str | None = None,
     episodes_per_job: int = 10,
+    journal: EpisodeJournal | None = None,
 ) -> EvaluationResult:
     """Run ``episodes`` complete episodes of ``task`` with a fresh policy from ``policy_factory``.
 
@@ -199,6 +196,9 @@ def evaluate(
             become Ray jobs of one CPU each; ``workers`` is then unused. The policy factory
             (a checkpoint path in it) must be readable on every node.
         episodes_per_job: episodes of one Ray job (each job builds its env and policy once).
+        journal: keep each finished episode on disk as it ends, and run only the episodes the
+            journal does not hold yet, so that an evaluation stopped part-way resumes where it
+            was (local evaluations only; ``seconds`` then counts the earlier calls' time too).
 
     Reproducibility: each episode's layout (and point-cloud sampling) depends on its seed
     only, so for a deterministic policy (the scripted experts, a network in eval mode with
@@ -206,11 +206,12 @@ def evaluate(
     generator is seeded in each worker with the first seed of its block (in this process
     under :func:`torch.random.fork_rng`, so the caller's generator is left alone): a policy
     that samples from it (diffusion / flow noise) gets identical results for the same
-    ``(seed, workers)``, but different ones when ``workers`` changes, unless it reseeds itself
-    per episode from ``episode_seed``. numpy's global generator is not seeded.
+    ``(seed, workers)``, but different ones when ``workers`` changes or a journal resumes,
+    unless it reseeds itself per episode from ``episode_seed``. numpy's global generator is not
+    seeded.
 
     The D2A policies and experts reseed their sampling from ``episode_seed`` at every episode
-    start, so their per-episode outcomes are the same for any ``workers`` and on Ray.
+    start, so their per-episode outcomes are the same for any ``workers``, on Ray and resumed.
 
     Stateful policies (e.g. an observation history): the policy sees every step of an
     episode in order, in the process that built it, and episodes follow one another; it
@@ -237,47 +238,82 @@ def evaluate(
     name = d2a_envs.get_task(task).name  # fails early on unknown names
     seeds = list(range(seed, seed + episodes))
     if ray_address is not None:
+        if journal is not None:
+            raise ValueError("a journal keeps local evaluations only (Ray retries its lost jobs itself)")
         return _evaluate_on_ray(policy_factory, name, seeds, env_kwargs, max_steps, progress, end_on_success,
                                 ray_address, episodes_per_job)
     env_kwargs["max_episode_steps"] = max_steps
     workers = min(workers, episodes)
-    blocks = _split(seeds, workers)
-    tally = _EpisodeTally(blocks)
-    bar = tqdm(total=episodes, desc=f"eval {name}", unit="ep", disable=not progress)
+    done = dict(journal.finished) if journal is not None else {}
+    earlier = journal.seconds if journal is not None else 0.0
+    bar = tqdm(total=episodes, initial=sum(s in done for s in seeds), desc=f"eval {name}", unit="ep",
+               disable=not progress)
     start = time.perf_counter()
+
+    def finish(seed: int, episode: EpisodeRecord) -> None:
+        done[seed] = episode
+        if journal is not None:
+            journal.record(seed, episode, earlier + time.perf_counter() - start)
+
     threads = torch.get_num_threads()  # the multi-process collector lowers this process's count
     try:
-        if workers == 1:
-            with torch.random.fork_rng(devices=[]):
-                env = _make_eval_env(name, env_kwargs, blocks[0][0], end_on_success)
-                collector = Collector(
-                    env, policy_factory=policy_factory, frames_per_batch=max_steps, total_frames=-1,
-                    exploration_type=ExplorationType.DETERMINISTIC, auto_register_policy_transforms=False,
-                )
-                _drain(collector, tally, bar)
-        else:
-            collector = MultiSyncCollector(
-                [partial(_make_eval_env, name, env_kwargs, block[0], end_on_success) for block in blocks],
-                policy_factory=policy_factory, frames_per_batch=workers * max_steps, total_frames=-1,
-                cat_results="stack", exploration_type=ExplorationType.DETERMINISTIC,
-                auto_register_policy_transforms=False,
-            )
-            _drain(collector, tally, bar)
+        for run in _consecutive_runs([s for s in seeds if s not in done]):
+            _run_episodes(policy_factory, name, run, env_kwargs, min(workers, len(run)), end_on_success,
+                          finish, bar)
     finally:
         bar.close()
         torch.set_num_threads(threads)
-    done = [tally.finished[s] for s in seeds]
+    results = [done[s] for s in seeds]
     return EvaluationResult(
         task=name,
-        successes=[episode.success_step is not None for episode in done],
-        returns=[episode.reward for episode in done],
+        successes=[episode.success_step is not None for episode in results],
+        returns=[episode.reward for episode in results],
         seeds=seeds,
-        success_steps=[episode.success_step for episode in done],
-        lengths=[episode.length for episode in done],
+        success_steps=[episode.success_step for episode in results],
+        lengths=[episode.length for episode in results],
         workers=workers,
-        seconds=time.perf_counter() - start,
+        seconds=earlier + time.perf_counter() - start,
         ended_on_success=end_on_success,
     )
+
+
+def _consecutive_runs(seeds: list[int]) -> list[list[int]]:
+    """Sorted seeds cut where they skip one: each run is one env's consecutive resets."""
+    runs: list[list[int]] = []
+    for seed in seeds:
+        if runs and seed == runs[-1][-1] + 1:
+            runs[-1].append(seed)
+        else:
+            runs.append([seed])
+    return runs
+
+
+def _run_episodes(
+    policy_factory: Callable[[], Callable[[TensorDictBase], TensorDictBase]], task: str, seeds: list[int],
+    env_kwargs: dict[str, Any], workers: int, end_on_success: bool,
+    on_finish: Callable[[int, EpisodeRecord], None], bar: tqdm,
+) -> None:
+    """Run the episodes of consecutive ``seeds``, worker i its i-th block, each one handed to
+    ``on_finish`` as it ends."""
+    blocks = _split(seeds, workers)
+    tally = _EpisodeTally(blocks, on_finish)
+    frames = env_kwargs["max_episode_steps"]
+    if workers == 1:
+        with torch.random.fork_rng(devices=[]):
+            env = _make_eval_env(task, env_kwargs, blocks[0][0], end_on_success)
+            collector = Collector(
+                env, policy_factory=policy_factory, frames_per_batch=frames, total_frames=-1,
+                exploration_type=ExplorationType.DETERMINISTIC, auto_register_policy_transforms=False,
+            )
+            _drain(collector, tally, bar)
+    else:
+        collector = MultiSyncCollector(
+            [partial(_make_eval_env, task, env_kwargs, block[0], end_on_success) for block in blocks],
+            policy_factory=policy_factory, frames_per_batch=workers * frames, total_frames=-1,
+            cat_results="stack", exploration_type=ExplorationType.DETERMINISTIC,
+            auto_register_policy_transforms=False,
+        )
+        _drain(collector, tally, bar)
 
 
 def _evaluate_block(

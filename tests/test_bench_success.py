@@ -133,6 +133,9 @@ def test_cells_acting_on_several_draws_evaluate_so_and_are_named_apart(tmp_path,
     monkeypatch.setattr(bench, "evaluate_checkpoint", recording(bench.evaluate_checkpoint))
     (cell,) = bench.run(config)
     assert draws == [3, 3] and cell.final_episodes == 1  # the periodic evaluation, then the final one
+    journal = tmp_path / "runs" / bench._cell_name(config, "reach", "mp1", 0) / bench.FINAL_JOURNAL
+    (episode,) = [json.loads(line) for line in journal.read_text().splitlines()[1:]]  # kept for a resumed call
+    assert episode["seed"] == config.final_seed and cell.final_seconds >= episode["seconds"] > 0
     assert bench.cell_path(config, "reach", "mp1", 0).name.startswith("reach_mp1_s0_e1_d1_draws3_")
     assert "draws" not in bench._cell_name(dataclasses.replace(config, action_draws=1), "reach", "mp1", 0)
     with pytest.raises(ValueError, match="action_draws must be at least 1"):

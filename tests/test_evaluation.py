@@ -4,12 +4,14 @@ not depend on the worker count; the two reporting protocols against hand computa
 from __future__ import annotations
 
 import functools
+import json
 
 import pytest
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from collectors.episode_journal import EpisodeJournal
 from collectors.evaluation import EvaluationResult, evaluate, honest_protocol, paper_protocol, wilson_interval
 from collectors.experts import ScriptedExpert
 
@@ -102,6 +104,28 @@ def test_a_stateful_policy_sees_is_init_at_every_episode_start() -> None:
     # The collector calls the policy once when it is built (on the first reset, to find its
     # outputs); the episodes follow, each starting with is_init. The third ends the collection.
     assert policy.episode_lengths == [1, 20, 20]
+
+
+def test_a_journal_resumes_an_interrupted_evaluation_with_only_the_missing_episodes(tmp_path) -> None:
+    path, key = tmp_path / "journal.jsonl", {"policy": "still", "task": TASK}
+    kwargs = dict(env_kwargs=ENV_KWARGS, max_steps=20, progress=False)
+    full = evaluate(CountingPolicy, TASK, 4, seed=3, journal=EpisodeJournal(path, key), **kwargs)
+    header, *episodes = path.read_text().splitlines()
+    assert [json.loads(line)["seed"] for line in episodes] == [3, 4, 5, 6]
+    # Stopped while writing the third episode; the first one's reward marked to see where it comes from.
+    first = json.loads(episodes[0]) | {"reward": -123.0}
+    path.write_text("\n".join([header, json.dumps(first), episodes[1], episodes[2][:15]]))
+    CountingPolicy.built.clear()
+    resumed = evaluate(CountingPolicy, TASK, 4, seed=3, journal=EpisodeJournal(path, key), **kwargs)
+    (policy,) = CountingPolicy.built
+    assert policy.episode_lengths == [1, 20]  # the build call and one of two episodes run (see above)
+    assert resumed.returns == [-123.0, *full.returns[1:]] and resumed.lengths == full.lengths
+    assert resumed.seconds > json.loads(episodes[1])["seconds"]
+    assert sorted(EpisodeJournal(path, key).finished) == [3, 4, 5, 6]
+    assert EpisodeJournal(path, key | {"policy": "another"}).finished == {}  # another key starts over
+    assert path.read_text().splitlines() == [json.dumps({"key": key | {"policy": "another"}}, sort_keys=True)]
+    with pytest.raises(ValueError, match="local"):
+        evaluate(ZeroPolicy, TASK, 1, seed=0, ray_address="local", journal=EpisodeJournal(path, key))
 
 
 def test_evaluate_rejects_bad_arguments() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 import shutil
 import time
 from pathlib import Path
@@ -287,9 +288,18 @@ def test_a_checkpoint_acts_with_other_actions_per_plan_draws_and_sample_steps(re
         policy.sample_normalized(window)
         hook.remove()
         assert len(calls) == evaluations
+    journal = tmp_path / "journal.jsonl"
     result = evaluate_checkpoint(tmp_path, "reach", 1, seed=0, acting=Acting(n_action_steps=1, action_draws=2),
-                                 progress=False)
+                                 progress=False, journal=journal)
     assert len(result.successes) == 1
+    header, episode = journal.read_text().splitlines()
+    journal.write_text(f"{header}\n{json.dumps(json.loads(episode) | {'reward': -1.0})}\n")  # marked
+    again = evaluate_checkpoint(tmp_path, "reach", 1, seed=0, acting=Acting(n_action_steps=1, action_draws=2),
+                                progress=False, journal=journal)
+    assert again.returns == [-1.0]  # read from the journal, not played again
+    other = evaluate_checkpoint(tmp_path, "reach", 1, seed=0, acting=Acting(n_action_steps=1), progress=False,
+                                journal=journal)
+    assert other.returns != [-1.0] and journal.read_text().splitlines()[0] != header  # other acting: replayed
 
 
 def test_a_diffusion_checkpoint_refuses_more_sample_steps_than_its_schedule_on_loading(reach_data, tmp_path):

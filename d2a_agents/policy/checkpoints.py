@@ -15,6 +15,7 @@ from typing import Any
 
 from collectors.dataset import Normalizer
 from collectors.envs import EXPERT_FUTURE_KEY
+from collectors.episode_journal import EpisodeJournal
 from collectors.evaluation import EvaluationResult, evaluate
 from collectors.experts import Student
 from d2a_agents.checkpoint import CheckpointError, file_sha256, load_checkpoint
@@ -143,7 +144,7 @@ def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
 def evaluate_checkpoint(
     path: str | Path, task: str, episodes: int, seed: int, workers: int = 1, progress: bool = True,
     end_on_success: bool = False, ray_address: str | None = None, acting: Acting = Acting(),
-    skip_unread: bool = True,
+    skip_unread: bool = True, journal: str | Path | None = None,
 ) -> EvaluationResult:
     """Evaluate a checkpoint's EMA policy on ``task`` in the env it was trained with (its
     point-cloud settings, its world model when it imagines, the episode length of its
@@ -152,7 +153,10 @@ def evaluate_checkpoint(
     step's, for the same outcomes more slowly); a task it was not trained on,
     or a checkpoint it cannot read, is refused before any worker starts. ``end_on_success``,
     ``ray_address``: see :func:`~collectors.evaluation.evaluate` (on Ray, the checkpoint and
-    its world model must be readable on every node); ``acting``: see :class:`Acting`."""
+    its world model must be readable on every node); ``acting``: see :class:`Acting`.
+    ``journal``: a file that keeps the finished episodes, so that calling again after an
+    interruption runs only the missing ones; it holds the checkpoint's digest and the settings,
+    and is started over when they differ."""
     policy, payload = load_policy(path, acting=acting)
     name = _trained_task(path, payload, task)
     path = policy_file(path).resolve()  # a worker on Ray may start elsewhere
@@ -160,9 +164,14 @@ def evaluate_checkpoint(
     env_kwargs = eval_env_kwargs(payload, name)
     if skip_unread:
         env_kwargs["read_steps"] = policy.config.read_steps()
+    kept = None
+    if journal is not None:
+        kept = EpisodeJournal(journal, {"policy_sha256": file_sha256(path), "task": name, "env_kwargs": env_kwargs,
+                                        "acting": dataclasses.asdict(acting), "max_steps": max_steps,
+                                        "end_on_success": end_on_success})
     return evaluate(functools.partial(load_torchrl_policy, path, acting), name, episodes, seed,
                     env_kwargs=env_kwargs, workers=workers, progress=progress,
-                    end_on_success=end_on_success, ray_address=ray_address, max_steps=max_steps)
+                    end_on_success=end_on_success, ray_address=ray_address, max_steps=max_steps, journal=kept)
 
 
 def imaginer_tasks(world_model: str | Path) -> list[str]:
