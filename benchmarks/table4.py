@@ -231,9 +231,9 @@ def run(config: Table4Config = Table4Config(), report_only: bool = False) -> lis
         for demos in config.demos:
             grid = [(task, algo, seed) for count, task, algo, seed in plan(config) if count == demos]
             run_grid(config.cell_config(demos), grid)
-    cells = finished_cells(reported(config))
-    counts = tuple(sorted({cell.demos for cell in cells} | set(config.demos)))
-    shown = dataclasses.replace(config, demos=counts)
+    widest = reported(config)
+    cells = finished_cells(widest)
+    shown = dataclasses.replace(config, demos=widest.demos)  # every count of the paper's layout
     if cells:  # the measured tasks and methods alone, so every run writes the same files
         shown = dataclasses.replace(shown, tasks=(), algos=())
     print(write_report(cells, shown))

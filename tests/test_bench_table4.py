@@ -80,12 +80,13 @@ def test_every_run_writes_the_same_report_whatever_its_options_order(tmp_path, c
     for task, algo, seed, wins in stored:
         success._store(wider.cell_config(2), _cell(task, algo, seed, 2, wins))
     written = []
-    for config in (Table4Config(demos=(2,), results=str(tmp_path)),
+    for config in (wider, Table4Config(demos=(2,), results=str(tmp_path)),
                    Table4Config(demos=(2,), tasks=("push",), algos=("d2a-present", "d2a", "mp1"), seeds=(4, 3),
                                 results=str(tmp_path))):
         run(config, report_only=True)
         written.append({name: (tmp_path / name).read_text() for name in ("table4.md", "cells.csv", "tasks.md")})
-    assert written[0] == written[1]
+    assert written[0] == written[1] == written[2]
+    assert _row(written[1]["table4.md"], "honest", 20) == ["- [paper 82 / 86]", "- [paper 91 / 96]"]  # every count
     assert "Each entry: `mp1` / `d2a` / `d2a-present`" in written[1]["table4.md"]
     assert _row(written[1]["table4.md"], "honest", 2) == ["- / - / 40 (1) [paper 18 / 26]",
                                                          "13 / 31 / - (1) [paper 22 / 35]"]  # measured tasks only
