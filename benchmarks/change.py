@@ -3,7 +3,8 @@
 For a trained world model on its demonstrations: the imagined change cloud (what ``d2a-change``
 reads) against the change the observation history already shows (motion continued), the
 present cloud (what ``d2a-present`` reads) and the true change resampled (the floor), at the
-policy's point count, on demonstrations the world model did not train on. Prints a markdown
+policy's point count, on demonstrations the world model did not train on, or on the states a
+policy reaches (its rollouts, ``d2a collect --policy``, with ``demos=0``). Prints a markdown
 table of mean distances (cm): from the cloud to the true change (precision) and back (coverage).
 
 Example::
@@ -28,7 +29,9 @@ class ChangeBenchConfig:
 
     world_model: str
     data: str
-    demos: int | None = None  # the world model trained on the first demos of each task: measure on the rest
+    # The world model trained on the first demos of each task: measure on the rest (0: on every
+    # episode, e.g. a policy's own rollouts from d2a collect --policy; None: its held-out split).
+    demos: int | None = None
     stride: int = 2  # every stride-th held-out transition
     num_points: int = 64  # the policy's point count
 

@@ -68,6 +68,9 @@ class CollectConfig:
             the expert's (DART): demonstrations that also show how the expert recovers.
         student: a policy that acts while the expert labels (DAgger); every attempt is kept
             (``episodes`` counts attempts) and, labelled, trains policies like demonstrations.
+        student_labels: False stores the student's own actions instead, unlabelled: rollouts of
+            the policy (``d2a collect --policy``), for a world model or to measure what it imagines
+            on the states the policy reaches (``d2a bench change``).
         ray_address: run the attempts on Ray (``"local"``, ``"auto"`` or a cluster address);
             ``None``: in this process.
     """
@@ -88,10 +91,11 @@ class CollectConfig:
     expert: str | None = None
     dart_noise: float = 0.0
     student: Student | None = None
+    student_labels: bool = True
 
     @property
     def expert_settings(self) -> ExpertSettings:
-        return ExpertSettings(self.expert, self.action_noise, self.dart_noise, self.student)
+        return ExpertSettings(self.expert, self.action_noise, self.dart_noise, self.student, self.student_labels)
 
     @property
     def keeps_every_attempt(self) -> bool:
@@ -145,13 +149,14 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
             continue
         if record.seed == config.seed:
             settings = (record.action_noise, record.keep_failures, record.expert or expert, record.dart_noise,
-                        record.student)
-            if settings != (config.action_noise, config.keep_failures, expert, config.dart_noise, student):
+                        record.student, record.student_labels)
+            if settings != (config.action_noise, config.keep_failures, expert, config.dart_noise, student,
+                            config.student_labels):
                 raise DatasetError(
                     f"{dataset.directory}: the {task} collection of seed {config.seed} used action noise "
                     f"{record.action_noise}, keep_failures={record.keep_failures}, the {record.expert} expert, "
-                    f"DART noise {record.dart_noise} and student {record.student}; resume it with those, or pass "
-                    "another --seed")
+                    f"DART noise {record.dart_noise} and student {record.student} (labelled: "
+                    f"{record.student_labels}); resume it with those, or pass another --seed")
             return record
         # The attempts this run may make must not reuse a seed: that would store an episode twice.
         last = config.seed + config.episodes * config.attempts_factor - 1
@@ -163,7 +168,7 @@ def _collection_for(dataset: DemoDataset, task: str, config: CollectConfig) -> C
             )
     record = CollectionRecord(task=task, seed=config.seed, action_noise=config.action_noise,
                               keep_failures=config.keep_failures, expert=expert, dart_noise=config.dart_noise,
-                              student=student)
+                              student=student, student_labels=config.student_labels)
     dataset.metadata.collections.append(record)
     return record
 
@@ -291,6 +296,8 @@ def collect(config: CollectConfig) -> DemoDataset:
             kept = "episodes" if config.keeps_every_attempt else "successful episodes"
             noise = (f", action noise {config.action_noise}" if config.action_noise else
                      f", DART noise {config.dart_noise} on the executed actions" if config.dart_noise else
-                     f", {config.student.name} acting, the expert labelling" if config.student is not None else "")
+                     "" if config.student is None else
+                     f", {config.student.name} acting, the expert labelling" if config.student_labels else
+                     f", {config.student.name} acting, its own actions stored")
             print(f"{spec.name}: kept {record.kept} {kept} of {record.attempts} tried (seed {record.seed}{noise})")
     return dataset

@@ -133,12 +133,15 @@ class ExpertSettings:
         action_noise: noise std on the executed and stored actions (rollouts for a world model).
         dart_noise: noise std on the executed actions only; the stored label stays the expert's.
         student: a policy whose actions are executed instead; the stored label stays the expert's.
+        student_labels: with a student, False stores the student's own executed actions and the
+            expert does not run: rollouts of the policy, not labelled states.
     """
 
     kind: str | None = None
     action_noise: float = 0.0
     dart_noise: float = 0.0
     student: Student | None = None
+    student_labels: bool = True
 
     def __post_init__(self) -> None:
         if self.kind not in (None, *EXPERT_KINDS):
@@ -146,12 +149,17 @@ class ExpertSettings:
         if sum((bool(self.action_noise), bool(self.dart_noise), self.student is not None)) > 1:
             raise ValueError("choose one of action noise (rollouts), DART noise (demonstrations) and a student "
                              "(DAgger)")
+        if not self.student_labels and self.student is None:
+            raise ValueError("student_labels=False stores a student's own actions: give the student")
 
 
 def make_expert(task: str, settings: ExpertSettings = ExpertSettings()) -> TensorDictModuleBase:
     """The expert of ``task``: Meta-World's scripted policy, or the Adroit controller or planner;
     with noise in ``settings``, its executed actions perturbed by :class:`ActionNoise`; with a
-    student, the student's actions executed and the expert's kept as labels."""
+    student, the student's actions executed and the expert's kept as labels (or, without
+    ``student_labels``, the student alone)."""
+    if settings.student is not None and not settings.student_labels:
+        return settings.student.make()
     spec = d2a_envs.get_task(task)
     name = expert_name(task, settings.kind)
     expert = ScriptedExpert(spec.name) if name == "scripted" else AdroitExpert(spec.name, name)

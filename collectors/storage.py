@@ -82,12 +82,16 @@ class CollectionRecord:
     expert: str | None = None  # scripted, controller or planner (None: collected before this was recorded)
     dart_noise: float = 0.0  # std of the noise on the executed actions; the stored labels are the expert's
     student: str | None = None  # the policy that acted while the expert labelled (DAgger), if any
+    student_labels: bool = True  # False: the student's own actions were stored, no expert labels
 
     @property
     def rollouts(self) -> bool:
-        """Whether this collection holds rollouts (noisy or failed, unlabelled), not demonstrations;
-        a student's episodes, failures included, carry the expert's labels and train policies."""
-        return self.student is None and (self.action_noise > 0 or self.keep_failures)
+        """Whether this collection holds rollouts (noisy, failed or a policy's own, unlabelled),
+        not demonstrations; a student's labelled episodes, failures included, carry the expert's
+        labels and train policies."""
+        if self.student is not None:
+            return not self.student_labels
+        return self.action_noise > 0 or self.keep_failures
 
 
 @dataclass

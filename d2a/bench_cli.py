@@ -434,10 +434,11 @@ def add_bench_commands(commands: Any) -> None:
     bench_change = bench.add_parser("change", help="how close the imagined change, the observed change and the "
                                                    "present cloud come to where the scene will change")
     bench_change.add_argument("--world-model", required=True, help="checkpoint of d2a train-wm")
-    bench_change.add_argument("--data", required=True, help="its demonstrations")
-    bench_change.add_argument("--demos", type=POSITIVE, default=None,
-                              help="the world model trained on the first N of each task: measure on the rest "
-                                   "(default: its own held-out episodes)")
+    bench_change.add_argument("--data", required=True,
+                              help="its demonstrations, or a policy's rollouts (d2a collect --policy; with --demos 0)")
+    bench_change.add_argument("--demos", type=NON_NEGATIVE, default=None,
+                              help="the world model trained on the first N of each task: measure on the rest; 0: "
+                                   "on every episode (default: its own held-out episodes)")
     bench_change.add_argument("--stride", type=POSITIVE, default=None, help="every k-th transition (default 2)")
     bench_change.add_argument("--points", type=POSITIVE, default=None, help="points per cloud (default 64)")
     bench_change.set_defaults(func=cmd_bench_change)

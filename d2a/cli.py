@@ -49,6 +49,20 @@ def cmd_viz_pointcloud(args: argparse.Namespace) -> None:
     print(f"wrote {path}")
 
 
+def _policy_rollouts(args: argparse.Namespace) -> dict[str, object]:
+    """``d2a collect --policy``: the checkpoint acts, its own actions stored, in the env settings
+    of the data it trained on (so the rollouts can join that data set)."""
+    from d2a_agents.policy.checkpoints import checkpoint_student, trained_env_kwargs
+
+    if len(args.task) != 1:
+        raise ValueError("--policy collects one task's rollouts: give one --task")
+    if parsed_env_kwargs(args) or args.max_episode_steps is not None:
+        raise ValueError("--policy collects in the env settings its policy trained with: drop the env options")
+    stored = trained_env_kwargs(args.policy, args.task[0])
+    return dict(student=checkpoint_student(args.policy, args.task[0]), student_labels=False,
+                max_episode_steps=stored.pop("max_episode_steps", None), env_kwargs=stored)
+
+
 def cmd_collect(args: argparse.Namespace) -> None:
     from collectors.collect import CollectConfig, collect
 
@@ -59,6 +73,8 @@ def cmd_collect(args: argparse.Namespace) -> None:
         max_episode_steps=args.max_episode_steps, action_noise=args.action_noise,
         keep_failures=True if args.keep_failures else None, expert=args.expert, dart_noise=args.dart_noise,
     )
+    if args.policy is not None:
+        config = replace_given(config, **_policy_rollouts(args))
     dataset = collect(config)
     print(f"wrote {dataset.num_frames} steps in {len(dataset.metadata.episodes)} episodes to {dataset.directory}")
 
@@ -298,6 +314,10 @@ def build_parser() -> argparse.ArgumentParser:
                          help="Gaussian noise added to the expert's actions: rollouts for a world model, never "
                               "trained on by policies (with --keep-failures)")
     collect.add_argument("--keep-failures", action="store_true", help="store every attempt, not only successes")
+    collect.add_argument("--policy", default=None, metavar="RUN",
+                         help="a policy checkpoint (or run directory) acts instead of the expert and its own actions "
+                              "are stored, every attempt kept: rollouts of the policy, in the env settings it trained "
+                              "with (one --task; --episodes counts attempts)")
     collect.add_argument("--dart-noise", type=NON_NEGATIVE_FLOAT, default=None, metavar="STD",
                          help="Gaussian noise on the executed actions while the stored labels stay the expert's "
                               "(DART): demonstrations that also show how the expert recovers")

@@ -56,6 +56,24 @@ def test_the_student_acts_and_the_expert_labels_each_state_it_reaches(tmp_path):
     assert (steps[5:, 0] > 0).all() and (steps[5:, 2] < 0).all()  # the student drove: +x and -z every step
 
 
+def test_without_labels_the_students_own_actions_are_stored_as_rollouts(tmp_path):
+    """``student_labels=False`` (``d2a collect --policy``): the expert does not label, every step
+    stores the action the student executed, and the episodes are rollouts that no policy trains on."""
+    out = tmp_path / "own"
+    collect(CollectConfig(tasks=("reach",), out=str(out), episodes=2, env_kwargs=SMALL, student=DRIFT,
+                          student_labels=False, max_episode_steps=10, progress=False))
+    dataset = DemoDataset.open(out)
+    record = dataset.metadata.collections[0]
+    assert (record.student, record.student_labels, record.kept) == ("drift", False, 2)
+    np.testing.assert_array_equal(dataset.frames()["action"].numpy(), np.tile(np.float32([0.3, 0, -0.3, 0]), (20, 1)))
+    assert dataset.rollout_episodes() == [0, 1]
+    with pytest.raises(DatasetError, match="labelled: False"):  # a labelled collection does not resume it
+        collect(CollectConfig(tasks=("reach",), out=str(out), episodes=3, append=True, env_kwargs=SMALL,
+                              student=DRIFT, max_episode_steps=10, progress=False))
+    with pytest.raises(ValueError, match="give the student"):
+        ExpertSettings(student_labels=False)
+
+
 def test_a_student_collection_resumes_only_with_the_same_student(tmp_path):
     out = str(tmp_path / "dagger")
     collect(CollectConfig(tasks=("reach",), out=out, episodes=1, env_kwargs=SMALL, student=DRIFT,

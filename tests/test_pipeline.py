@@ -302,6 +302,25 @@ def test_a_checkpoint_acts_with_other_actions_per_plan_draws_and_sample_steps(re
     assert other.returns != [-1.0] and journal.read_text().splitlines()[0] != header  # other acting: replayed
 
 
+def test_collect_policy_appends_the_policys_own_rollouts_to_its_demonstrations(reach_data, tmp_path):
+    """``d2a collect --policy``: in the env settings the policy trained with, so its rollouts join
+    that data set, where they are rollouts (no policy trains on them); other env options refused."""
+    from d2a.cli import main
+
+    train_policy(dataclasses.replace(policy_config("mp1", reach_data, tmp_path / "run", steps=1), eval_episodes=0))
+    data = tmp_path / "data"
+    shutil.copytree(reach_data, data)
+    main(["collect", "--task", "reach", "--policy", str(tmp_path / "run"), "--episodes", "1", "--seed", "500",
+          "--append", "--out", str(data)])
+    dataset = DemoDataset.open(data)
+    record = dataset.metadata.collections[-1]
+    assert record.student == str((tmp_path / "run" / CHECKPOINT_NAME).resolve()) and not record.student_labels
+    assert dataset.rollout_episodes() == [2] and len(dataset.demonstrations().metadata.episodes) == 2
+    with pytest.raises(SystemExit, match="drop the env options"):
+        main(["collect", "--task", "reach", "--policy", str(tmp_path / "run"), "--num-points", "64",
+              "--out", str(tmp_path / "other")])
+
+
 def test_a_diffusion_checkpoint_refuses_more_sample_steps_than_its_schedule_on_loading(reach_data, tmp_path):
     train_policy(dataclasses.replace(policy_config("dp3", reach_data, tmp_path, steps=1), eval_episodes=0))
     assert load_policy(tmp_path, acting=Acting(sample_steps=100))[0].sample_steps == 100  # its 100 timesteps

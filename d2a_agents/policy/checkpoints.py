@@ -117,6 +117,14 @@ def checkpoint_student(path: str | Path, task: str, acting: Acting = Acting()) -
     return Student(str(path), functools.partial(load_torchrl_policy, path, acting), eval_env_kwargs(payload, name))
 
 
+def trained_env_kwargs(path: str | Path, task: str) -> dict[str, Any]:
+    """The env settings of the data the policy trained on for ``task``, as its data set stores
+    them (``max_episode_steps`` included): a collection of the policy's own rollouts in these
+    joins that data set."""
+    payload = load_checkpoint(policy_file(path), CHECKPOINT_KIND)
+    return dict(payload["env_kwargs"][_trained_task(path, payload, task)])
+
+
 def eval_env_kwargs(payload: dict[str, Any], task: str) -> dict[str, Any]:
     """The env settings the policy was trained with (less the colour image where the policy reads
     none: drawing it would only cost time), plus its world model when it imagines, or the
