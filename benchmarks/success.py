@@ -61,11 +61,11 @@ import d2a_envs
 from collectors.atomic import DirectoryBusyError, atomic_write_text, exclusive_writer
 from collectors.collect import CollectConfig, collect, demonstrations_tag
 from collectors.evaluation import honest_protocol, paper_protocol
-from collectors.experts import ExpertSettings
+from collectors.experts import ExpertSettings, Student
 from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
 from d2a_agents.checkpoint import load_checkpoint
 from d2a_agents.policy.agent import reads_images, uses_imagination
-from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, Acting, evaluate_checkpoint
+from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, Acting, checkpoint_student, evaluate_checkpoint
 from d2a_agents.policy.perception import Reliance
 from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
@@ -102,6 +102,11 @@ class SuccessBenchConfig:
     # trains on beside the demonstrations (0: none); imagining cells then carry ``_wmr<N>``.
     wm_rollouts: int = 0
     rollout_noise: float = 0.3
+    # The algo of this bench's own seed-0 cell (same task, demonstrations and settings, the plain
+    # world model) whose own rollouts, not the noisy expert's, are those ``wm_rollouts``: a world
+    # model that has seen the states such a policy reaches; its data, world model and imagining
+    # cells carry ``_wmr<N>p<algo>``. None: the noisy expert's.
+    wm_policy_rollouts: str | None = None
     # DART noise of the demonstrations (d2a collect --dart-noise): their own data set, world
     # models and cells (``_dart<std>``); 0: plain demonstrations.
     dart_noise: float = 0.0
@@ -144,6 +149,9 @@ class SuccessBenchConfig:
             raise ValueError(f"a pool of {self.pool} demonstrations cannot give cells {self.demos}")
         if self.action_draws < 1:
             raise ValueError(f"action_draws must be at least 1, not {self.action_draws}")
+        if self.wm_policy_rollouts is not None and not self.wm_rollouts:
+            raise ValueError("wm_policy_rollouts names whose rollouts the world model trains on: give their "
+                             "count, wm_rollouts")
         ExpertSettings(kind=self.expert)  # an unknown kind fails here
         others = [task for task in self.tasks if d2a_envs.get_task(task).suite != "adroit"]
         if self.expert is not None and others:
@@ -236,18 +244,38 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     env_kwargs = _data_env_kwargs(config)
     images = f"_rgb{env_kwargs['rgb_image_size']}" if "rgb_image_size" in env_kwargs else ""
     data = Path(config.workdir) / "data" / f"{task}{_demonstrations_tag(config)}{images}"
+    if config.wm_policy_rollouts is not None:  # the pool again (the same seeds: the same episodes), apart
+        data = data.with_name(f"{data.name}{_world_model_tag(config)}")
+        student = _policy_student(config, task)
     _when_free(lambda: collect(CollectConfig(
         tasks=(task,), out=str(data), episodes=config.pool or config.demos, seed=0, append=True,
         env_kwargs=env_kwargs, dart_noise=config.dart_noise, expert=config.expert,
         progress=config.ray_address is None, ray_address=config.ray_address,
     )), f"{task} demonstrations")
-    if config.wm_rollouts:
+    if config.wm_policy_rollouts is not None:
+        _when_free(lambda: collect(CollectConfig(
+            tasks=(task,), out=str(data), episodes=config.wm_rollouts, seed=ROLLOUT_SEED, append=True,
+            env_kwargs=env_kwargs, expert=config.expert, student=student, student_labels=False,
+            progress=config.ray_address is None,
+        )), f"{task} rollouts of {student.name}")
+    elif config.wm_rollouts:
         _when_free(lambda: collect(CollectConfig(
             tasks=(task,), out=str(data), episodes=config.wm_rollouts, seed=ROLLOUT_SEED, append=True,
             env_kwargs=env_kwargs, action_noise=config.rollout_noise, keep_failures=True, expert=config.expert,
             progress=config.ray_address is None, ray_address=config.ray_address,
         )), f"{task} rollouts")
     return data
+
+
+def _policy_student(config: SuccessBenchConfig, task: str) -> Student:
+    """The finished seed-0 ``wm_policy_rollouts`` cell of the plain bench, as the acting policy
+    of the world model's rollouts; refused while that cell is not finished."""
+    plain = dataclasses.replace(config, wm_rollouts=0, wm_policy_rollouts=None)
+    algo = config.wm_policy_rollouts
+    if not cell_path(plain, task, algo, 0).exists():
+        raise ValueError(f"the world model trains on the rollouts of the {task} {algo} seed-0 cell "
+                         f"({_cell_name(plain, task, algo, 0)}): finish that cell first")
+    return checkpoint_student(Path(plain.workdir) / "runs" / _cell_name(plain, task, algo, 0), task)
 
 
 def _world_model(config: SuccessBenchConfig, task: str, data: Path, device: str = "cpu") -> Path:
@@ -344,8 +372,11 @@ def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> s
 
 def _world_model_tag(config: SuccessBenchConfig) -> str:
     """What sets the world model apart from the grid's own: the rollouts it also trained on
-    (``_wmr<N>n<noise>``), no past actions read (``_wmnoact``)."""
-    rollouts = f"_wmr{config.wm_rollouts}n{config.rollout_noise:g}" if config.wm_rollouts else ""
+    (``_wmr<N>n<noise>`` of the noisy expert, ``_wmr<N>p<algo>`` of a policy), no past actions
+    read (``_wmnoact``)."""
+    source = (f"p{config.wm_policy_rollouts}" if config.wm_policy_rollouts is not None
+              else f"n{config.rollout_noise:g}")
+    rollouts = f"_wmr{config.wm_rollouts}{source}" if config.wm_rollouts else ""
     return rollouts + ("" if config.world_model.reads_actions else "_wmnoact")
 
 

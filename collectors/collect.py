@@ -195,7 +195,8 @@ def collect_task(dataset: DemoDataset, task: str, config: CollectConfig) -> Coll
     else:
         rollouts = _expert_episodes_on_ray(spec.name, env_kwargs, first_seed, config.max_episode_steps,
                                            config.ray_address, config.expert_settings)
-    bar = tqdm(total=config.episodes, initial=record.kept, desc=f"{spec.name} {'episodes' if config.keeps_every_attempt else 'demos'}", disable=not config.progress)
+    unit = "episodes" if config.keeps_every_attempt else "demos"
+    bar = tqdm(total=config.episodes, initial=record.kept, desc=f"{spec.name} {unit}", disable=not config.progress)
     try:
         for rollout in rollouts:
             episode_seed = int(rollout["episode_seed"][0])

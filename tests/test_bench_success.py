@@ -6,6 +6,7 @@ import dataclasses
 import json
 
 import pytest
+import torch
 
 import benchmarks.success as bench
 from benchmarks.success import Cell, SuccessBenchConfig, format_table
@@ -214,3 +215,27 @@ def test_imagining_cells_of_a_world_model_with_rollouts_are_named_apart():
     rollouts = dataclasses.replace(plain, wm_rollouts=20)
     assert bench._cell_name(rollouts, "push", "d2a", 0) == "push_d2a_s0_e15_fresh_d5_wmr20n0.3"
     assert bench._cell_name(rollouts, "push", "mp1", 0) == bench._cell_name(plain, "push", "mp1", 0)  # no world model
+    own = dataclasses.replace(rollouts, wm_policy_rollouts="d2a")
+    assert bench._cell_name(own, "push", "d2a", 0) == "push_d2a_s0_e15_fresh_d5_wmr20pd2a"
+    with pytest.raises(ValueError, match="give their count"):
+        dataclasses.replace(plain, wm_policy_rollouts="d2a")
+
+
+def test_a_world_model_of_a_policys_rollouts_gets_the_pool_again_and_that_policys_own_episodes(tmp_path):
+    """``wm_policy_rollouts``: a data set apart holding the same demonstrations as the pool
+    (collected again from the same seeds) and the rollouts of the bench's seed-0 cell of that
+    algo, its own actions stored; refused while that cell is not finished."""
+    config = _tiny_bench(tmp_path)
+    own = dataclasses.replace(config, wm_rollouts=1, wm_policy_rollouts="mp1")
+    with pytest.raises(ValueError, match="finish that cell first"):
+        bench._dataset(own, "reach")
+    bench.run(config)  # the plain mp1 cell of seed 0, on the pool
+    data = bench._dataset(own, "reach")
+    pool = DemoDataset.open(tmp_path / "data" / "reach")
+    again = DemoDataset.open(data)
+    assert data.name == "reach_wmr1pmp1" and again.demonstrations().metadata.episodes == pool.metadata.episodes
+    assert torch.equal(again.demonstrations().frames()["point_cloud"], pool.frames()["point_cloud"])
+    (rollout,) = again.rollout_episodes()
+    record = again.metadata.collections[again.metadata.episodes[rollout].collection]
+    run = tmp_path / "runs" / bench._cell_name(config, "reach", "mp1", 0) / "policy.pt"
+    assert (record.student, record.student_labels, record.seed) == (str(run.resolve()), False, bench.ROLLOUT_SEED)

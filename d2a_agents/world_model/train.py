@@ -203,7 +203,7 @@ def _train_world_model(config: TrainWorldModelConfig) -> tuple[TriplaneWorldMode
         rollouts = full.rollout_episodes()
         if not rollouts:
             raise ValueError(f"{config.data} holds no rollouts: collect them with d2a collect --action-noise "
-                             "--keep-failures --append")
+                             "--keep-failures --append (the noisy expert's) or --policy --append (a policy's)")
         train_ids += rollouts
     frames = full.frames()
     train = WorldModelTransitions(frames, grid, model_config.horizon, model_config.action_history, train_ids)
