@@ -268,14 +268,17 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
 
 
 def _policy_student(config: SuccessBenchConfig, task: str) -> Student:
-    """The finished seed-0 ``wm_policy_rollouts`` cell of the plain bench, as the acting policy
-    of the world model's rollouts; refused while that cell is not finished."""
+    """The trained policy of the plain bench's seed-0 ``wm_policy_rollouts`` cell in the workdir
+    (whichever results directory holds its cell), as the acting policy of the world model's
+    rollouts; refused while its training is not finished."""
     plain = dataclasses.replace(config, wm_rollouts=0, wm_policy_rollouts=None)
     algo = config.wm_policy_rollouts
-    if not cell_path(plain, task, algo, 0).exists():
-        raise ValueError(f"the world model trains on the rollouts of the {task} {algo} seed-0 cell "
-                         f"({_cell_name(plain, task, algo, 0)}): finish that cell first")
-    return checkpoint_student(Path(plain.workdir) / "runs" / _cell_name(plain, task, algo, 0), task)
+    run = Path(plain.workdir) / "runs" / _cell_name(plain, task, algo, 0)
+    if not (run / CHECKPOINT_NAME).exists() or load_checkpoint(run / CHECKPOINT_NAME, "policy")["step"] \
+            < plain.policy.steps:
+        raise ValueError(f"the world model trains on the rollouts of the {task} {algo} seed-0 cell ({run.name}): "
+                         "finish that cell first")
+    return checkpoint_student(run, task)
 
 
 def _world_model(config: SuccessBenchConfig, task: str, data: Path, device: str = "cpu") -> Path:
