@@ -102,11 +102,13 @@ class SuccessBenchConfig:
     # trains on beside the demonstrations (0: none); imagining cells then carry ``_wmr<N>``.
     wm_rollouts: int = 0
     rollout_noise: float = 0.3
-    # The algo of this bench's own seed-0 cell (same task, demonstrations and settings, the plain
-    # world model) whose own rollouts, not the noisy expert's, are those ``wm_rollouts``: a world
-    # model that has seen the states such a policy reaches; its data, world model and imagining
-    # cells carry ``_wmr<N>p<algo>``. None: the noisy expert's.
+    # The algo of this bench's own cell of seed ``wm_policy_seed`` (same task, demonstrations and
+    # settings, the plain world model) whose own rollouts, not the noisy expert's, are those
+    # ``wm_rollouts``: a world model that has seen the states such a policy reaches; its data,
+    # world model and imagining cells carry ``_wmr<N>p<algo>`` (``...p<algo>s<seed>`` for a seed
+    # other than 0). None: the noisy expert's.
     wm_policy_rollouts: str | None = None
+    wm_policy_seed: int = 0
     # DART noise of the demonstrations (d2a collect --dart-noise): their own data set, world
     # models and cells (``_dart<std>``); 0: plain demonstrations.
     dart_noise: float = 0.0
@@ -152,6 +154,9 @@ class SuccessBenchConfig:
         if self.wm_policy_rollouts is not None and not self.wm_rollouts:
             raise ValueError("wm_policy_rollouts names whose rollouts the world model trains on: give their "
                              "count, wm_rollouts")
+        if self.wm_policy_seed and self.wm_policy_rollouts is None:
+            raise ValueError("wm_policy_seed picks the cell of wm_policy_rollouts whose rollouts the world model "
+                             "trains on: name its algo")
         ExpertSettings(kind=self.expert)  # an unknown kind fails here
         others = [task for task in self.tasks if d2a_envs.get_task(task).suite != "adroit"]
         if self.expert is not None and others:
@@ -268,16 +273,16 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
 
 
 def _policy_student(config: SuccessBenchConfig, task: str) -> Student:
-    """The trained policy of the plain bench's seed-0 ``wm_policy_rollouts`` cell in the workdir
-    (whichever results directory holds its cell), as the acting policy of the world model's
-    rollouts; refused while its training is not finished."""
-    plain = dataclasses.replace(config, wm_rollouts=0, wm_policy_rollouts=None)
-    algo = config.wm_policy_rollouts
-    run = Path(plain.workdir) / "runs" / _cell_name(plain, task, algo, 0)
+    """The trained policy of the plain bench's ``wm_policy_rollouts`` cell of seed ``wm_policy_seed``
+    in the workdir (whichever results directory holds its cell), as the acting policy of the world
+    model's rollouts; refused while its training is not finished."""
+    plain = dataclasses.replace(config, wm_rollouts=0, wm_policy_rollouts=None, wm_policy_seed=0)
+    algo, seed = config.wm_policy_rollouts, config.wm_policy_seed
+    run = Path(plain.workdir) / "runs" / _cell_name(plain, task, algo, seed)
     if not (run / CHECKPOINT_NAME).exists() or load_checkpoint(run / CHECKPOINT_NAME, "policy")["step"] \
             < plain.policy.steps:
-        raise ValueError(f"the world model trains on the rollouts of the {task} {algo} seed-0 cell ({run.name}): "
-                         "finish that cell first")
+        raise ValueError(f"the world model trains on the rollouts of the {task} {algo} seed-{seed} cell "
+                         f"({run.name}): finish that cell first")
     return checkpoint_student(run, task)
 
 
@@ -375,9 +380,10 @@ def _cell_name(config: SuccessBenchConfig, task: str, algo: str, seed: int) -> s
 
 def _world_model_tag(config: SuccessBenchConfig) -> str:
     """What sets the world model apart from the grid's own: the rollouts it also trained on
-    (``_wmr<N>n<noise>`` of the noisy expert, ``_wmr<N>p<algo>`` of a policy), no past actions
-    read (``_wmnoact``)."""
-    source = (f"p{config.wm_policy_rollouts}" if config.wm_policy_rollouts is not None
+    (``_wmr<N>n<noise>`` of the noisy expert, ``_wmr<N>p<algo>`` of a policy, ``...s<seed>`` where
+    its seed is not 0), no past actions read (``_wmnoact``)."""
+    policy_seed = f"s{config.wm_policy_seed}" if config.wm_policy_seed else ""
+    source = (f"p{config.wm_policy_rollouts}{policy_seed}" if config.wm_policy_rollouts is not None
               else f"n{config.rollout_noise:g}")
     rollouts = f"_wmr{config.wm_rollouts}{source}" if config.wm_rollouts else ""
     return rollouts + ("" if config.world_model.reads_actions else "_wmnoact")

@@ -55,8 +55,10 @@ def add_world_model_data_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rollout-noise", type=NON_NEGATIVE_FLOAT, default=None,
                         help="std of their action noise (default 0.3)")
     parser.add_argument("--wm-policy-rollouts", default=None, metavar="ALGO",
-                        help="those rollouts are the policy's of this bench's own seed-0 ALGO cell (finished "
-                             "first, with the plain world model), not the noisy expert's")
+                        help="those rollouts are the policy's of this bench's own ALGO cell of seed "
+                             "--wm-policy-seed (finished first, with the plain world model), not the noisy expert's")
+    parser.add_argument("--wm-policy-seed", type=NON_NEGATIVE, default=None, metavar="SEED",
+                        help="the seed of that ALGO cell (default 0)")
     parser.add_argument("--wm-without-actions", action="store_true",
                         help="the world model reads no past actions: it imagines from the scene alone")
 
@@ -213,7 +215,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         world_model_steps=args.wm_steps, threads=args.threads, ray_address=args.ray, evaluations=args.evaluations,
         eval_layouts=args.eval_layouts, demos=args.demos, pool=args.pool, cells=args.cells,
         wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise, dart_noise=args.dart_noise,
-        wm_policy_rollouts=args.wm_policy_rollouts,
+        wm_policy_rollouts=args.wm_policy_rollouts, wm_policy_seed=args.wm_policy_seed,
         action_draws=args.action_draws, rgb_image_size=args.rgb_image_size, expert=args.expert,
     ))
 
@@ -224,7 +226,7 @@ def grid_cells(base: Any, args: argparse.Namespace) -> Any:
                           ray_address=args.ray, evaluations=args.evaluations, eval_layouts=args.eval_layouts,
                           workers=args.workers, shared_cells=tuple(args.shared_cells) if args.shared_cells else None,
                           wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise,
-                          wm_policy_rollouts=args.wm_policy_rollouts,
+                          wm_policy_rollouts=args.wm_policy_rollouts, wm_policy_seed=args.wm_policy_seed,
                           world_model=world_model_asked(args, None, base.world_model))
 
 

@@ -217,8 +217,12 @@ def test_imagining_cells_of_a_world_model_with_rollouts_are_named_apart():
     assert bench._cell_name(rollouts, "push", "mp1", 0) == bench._cell_name(plain, "push", "mp1", 0)  # no world model
     own = dataclasses.replace(rollouts, wm_policy_rollouts="d2a")
     assert bench._cell_name(own, "push", "d2a", 0) == "push_d2a_s0_e15_fresh_d5_wmr20pd2a"
+    other_seed = dataclasses.replace(own, wm_policy_seed=1)
+    assert bench._cell_name(other_seed, "push", "d2a", 2) == "push_d2a_s2_e15_fresh_d5_wmr20pd2as1"
     with pytest.raises(ValueError, match="give their count"):
         dataclasses.replace(plain, wm_policy_rollouts="d2a")
+    with pytest.raises(ValueError, match="name its algo"):
+        dataclasses.replace(rollouts, wm_policy_seed=1)
 
 
 def test_a_world_model_of_a_policys_rollouts_gets_the_pool_again_and_that_policys_own_episodes(tmp_path):
@@ -229,6 +233,8 @@ def test_a_world_model_of_a_policys_rollouts_gets_the_pool_again_and_that_policy
     own = dataclasses.replace(config, wm_rollouts=1, wm_policy_rollouts="mp1")
     with pytest.raises(ValueError, match="finish that cell first"):
         bench._dataset(own, "reach")
+    with pytest.raises(ValueError, match="mp1 seed-1 cell"):
+        bench._dataset(dataclasses.replace(own, wm_policy_seed=1), "reach")
     bench.run(config)  # the plain mp1 cell of seed 0, on the pool
     data = bench._dataset(own, "reach")
     pool = DemoDataset.open(tmp_path / "data" / "reach")

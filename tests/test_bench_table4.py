@@ -114,8 +114,10 @@ def test_cli_options(monkeypatch):
     main(["bench", "table4", "--demos", "2", "--wm-rollouts", "20", "--rollout-noise", "0.2"])
     cell_config = seen["config"].cell_config(2)
     assert (cell_config.wm_rollouts, cell_config.rollout_noise, cell_config.wm_policy_rollouts) == (20, 0.2, None)
-    main(["bench", "table4", "--demos", "2", "--wm-rollouts", "20", "--wm-policy-rollouts", "d2a"])
-    assert seen["config"].cell_config(2).wm_policy_rollouts == "d2a"
+    main(["bench", "table4", "--demos", "2", "--wm-rollouts", "20", "--wm-policy-rollouts", "d2a",
+          "--wm-policy-seed", "1"])
+    cell_config = seen["config"].cell_config(2)
+    assert (cell_config.wm_policy_rollouts, cell_config.wm_policy_seed) == ("d2a", 1)
     main(["bench", "table4", "--demos", "2", "--wm-without-actions"])
     cell_config = seen["config"].cell_config(2)
     assert not cell_config.world_model.reads_actions
