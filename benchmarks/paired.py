@@ -214,6 +214,8 @@ def newcombe_interval(wins_a: int, trials_a: int, wins_b: int, trials_b: int) ->
 
 
 def summarize_pairs(pairs: list[Pair]) -> PairedSummary:
+    """Wins / ties / losses, the mean difference over pairs with its Student-t interval, and the
+    pooled episodes' rates with their Wilson intervals and Newcombe's interval of their difference."""
     if not pairs:
         raise ValueError("no pairs to summarise")
     differences = [pair.difference for pair in pairs]

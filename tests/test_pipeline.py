@@ -364,6 +364,36 @@ def test_an_evaluation_cut_short_is_run_when_the_training_resumes(reach_data, tm
     assert resumed == straight
 
 
+def test_a_periodic_evaluation_killed_part_way_plays_only_its_missing_episodes(reach_data, tmp_path, monkeypatch):
+    """Killed after the first of a periodic evaluation's two episodes, the resumed run plays the
+    second alone (the first is kept in the run's journal) and ends with the uninterrupted history."""
+    from collectors.episode_journal import EpisodeJournal
+    from d2a_agents.policy.train import PERIODIC_JOURNAL
+
+    config = dataclasses.replace(policy_config("mp1", reach_data, tmp_path / "cut", steps=4), eval_every=2,
+                                 eval_episodes=2)
+    real_record, played, killing = EpisodeJournal.record, [], [True]
+
+    def record(journal, seed, episode, seconds):
+        real_record(journal, seed, episode, seconds)
+        played.append(seed)
+        if killing and len(played) == 3:  # the first episode of the step-4 evaluation is on disk
+            killing.clear()
+            raise Killed
+
+    monkeypatch.setattr(EpisodeJournal, "record", record)
+    with pytest.raises(Killed):
+        train_policy(config)
+    assert played == [10_000, 10_001, 10_000]
+    journal = tmp_path / "cut" / PERIODIC_JOURNAL.format(task="reach")
+    assert [json.loads(line)["seed"] for line in journal.read_text().splitlines()[1:]] == [10_000]
+    played.clear()
+    _, resumed = train_policy(config)
+    assert played == [10_001]  # the killed evaluation's missing episode, nothing else
+    _, straight = train_policy(dataclasses.replace(config, out=str(tmp_path / "straight")))
+    assert [point.step for point in resumed] == [2, 4] and resumed == straight
+
+
 @pytest.mark.parametrize("layouts, seeds", [("fixed", [10_000] * 4), ("fresh", [10_000, 10_001, 10_001, 10_002])])
 def test_periodic_evaluations_play_fixed_or_fresh_layouts_across_a_resume(layouts, seeds, reach_data, tmp_path,
                                                                            monkeypatch):

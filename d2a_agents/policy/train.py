@@ -64,6 +64,9 @@ LOGGED_METRICS = ("mse", "cfg_weight", "cfg_rho", "cfg_active")
 # First env seed of the periodic evaluations (the final evaluations of the benches start at 100000).
 EVALUATION_SEED = 10_000
 EVAL_LAYOUTS = ("fixed", "fresh")
+# A periodic evaluation's finished episodes, one file per task in the run directory: a run
+# killed part-way through one plays only its missing episodes when it resumes.
+PERIODIC_JOURNAL = "periodic_evaluation_{task}.jsonl"
 
 
 @dataclass(frozen=True)
@@ -501,7 +504,8 @@ def _train_policy(config: TrainPolicyConfig) -> tuple[Policy, list[EvaluationPoi
                                    config.eval_episodes)
             result = evaluate_checkpoint(path, task, config.eval_episodes, seed=seed, workers=config.eval_workers,
                                          progress=False, end_on_success=config.eval_end_on_success,
-                                         acting=Acting(action_draws=config.eval_action_draws))
+                                         acting=Acting(action_draws=config.eval_action_draws),
+                                         journal=out / PERIODIC_JOURNAL.format(task=task))
             history.append(EvaluationPoint(step, result.success_rate, result.episodes, task))
             log({f"success/{task}": result.success_rate}, step)
             bar.write(f"step {step}: {task} success {result.success_rate:.0%} over {result.episodes} episodes")
