@@ -249,26 +249,25 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
     env_kwargs = _data_env_kwargs(config)
     images = f"_rgb{env_kwargs['rgb_image_size']}" if "rgb_image_size" in env_kwargs else ""
     data = Path(config.workdir) / "data" / f"{task}{_demonstrations_tag(config)}{images}"
+    # Whose rollouts the world model also sees: a trained policy's (its own actions, collected
+    # here) or the noisy expert's (on Ray where the bench runs there).
+    source: dict[str, object] = dict(action_noise=config.rollout_noise, keep_failures=True,
+                                     ray_address=config.ray_address)
+    rollouts = f"{task} rollouts"
     if config.wm_policy_rollouts is not None:  # the pool again (the same seeds: the same episodes), apart
         data = data.with_name(f"{data.name}{_world_model_tag(config)}")
         student = _policy_student(config, task)
+        source, rollouts = dict(student=student, student_labels=False), f"{rollouts} of {student.name}"
     _when_free(lambda: collect(CollectConfig(
         tasks=(task,), out=str(data), episodes=config.pool or config.demos, seed=0, append=True,
         env_kwargs=env_kwargs, dart_noise=config.dart_noise, expert=config.expert,
         progress=config.ray_address is None, ray_address=config.ray_address,
     )), f"{task} demonstrations")
-    if config.wm_policy_rollouts is not None:
+    if config.wm_rollouts:
         _when_free(lambda: collect(CollectConfig(
             tasks=(task,), out=str(data), episodes=config.wm_rollouts, seed=ROLLOUT_SEED, append=True,
-            env_kwargs=env_kwargs, expert=config.expert, student=student, student_labels=False,
-            progress=config.ray_address is None,
-        )), f"{task} rollouts of {student.name}")
-    elif config.wm_rollouts:
-        _when_free(lambda: collect(CollectConfig(
-            tasks=(task,), out=str(data), episodes=config.wm_rollouts, seed=ROLLOUT_SEED, append=True,
-            env_kwargs=env_kwargs, action_noise=config.rollout_noise, keep_failures=True, expert=config.expert,
-            progress=config.ray_address is None, ray_address=config.ray_address,
-        )), f"{task} rollouts")
+            env_kwargs=env_kwargs, expert=config.expert, progress=config.ray_address is None, **source,
+        )), rollouts)
     return data
 
 

@@ -225,6 +225,17 @@ def test_imagining_cells_of_a_world_model_with_rollouts_are_named_apart():
         dataclasses.replace(rollouts, wm_policy_seed=1)
 
 
+def test_a_world_model_of_noisy_expert_rollouts_gets_them_beside_the_pool_in_its_data_set(tmp_path):
+    config = _tiny_bench(tmp_path, wm_rollouts=1, rollout_noise=0.5)
+    data = bench._dataset(config, "reach")
+    assert data.name == "reach"  # the noisy expert's rollouts join the pool's own data set
+    dataset = DemoDataset.open(data)
+    (rollout,) = dataset.rollout_episodes()
+    record = dataset.metadata.collections[dataset.metadata.episodes[rollout].collection]
+    assert (record.action_noise, record.keep_failures, record.student, record.seed) == (
+        0.5, True, None, bench.ROLLOUT_SEED)
+
+
 def test_a_world_model_of_a_policys_rollouts_gets_the_pool_again_and_that_policys_own_episodes(tmp_path):
     """``wm_policy_rollouts``: a data set apart holding the same demonstrations as the pool
     (collected again from the same seeds) and the rollouts of the bench's seed-0 cell of that
