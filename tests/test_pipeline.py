@@ -129,6 +129,7 @@ def test_d2a_trains_on_imagined_clouds_and_acts_with_them(reach_data, world_mode
     assert len(gate) == 3 and all(0 <= w <= 1 and -1 <= rho <= 1 and 0 <= active <= 1 for w, rho, active in gate)
     assert history[0].episodes == 1
     assert_the_steps_it_skips_change_nothing(tmp_path)
+    assert_its_rollouts_skip_the_imagination_it_does_not_read(tmp_path, tmp_path / "rollouts")
 
 
 def test_an_env_refuses_to_imagine_from_a_cloud_it_skips(world_model):
@@ -147,6 +148,29 @@ def assert_the_steps_it_skips_change_nothing(run: Path) -> None:
     skipped, every = (evaluate_checkpoint(run, "reach", 1, seed=5, progress=False, skip_unread=skip)
                       for skip in (True, False))
     assert (skipped.successes, skipped.lengths, skipped.returns) == (every.successes, every.lengths, every.returns)
+
+
+def assert_its_rollouts_skip_the_imagination_it_does_not_read(run: Path, out: Path) -> None:
+    """A collection of the policy's own rollouts (``d2a collect --policy``) imagines only at the
+    steps the policy reads, renders the stored cloud at every step, and stores the same episode,
+    frame for frame, as a collection that imagines at every step."""
+    from collectors.collect import CollectConfig, collect
+    from d2a_agents.policy.checkpoints import checkpoint_student, trained_env_kwargs
+    from d2a_envs.read_steps import ReadSteps
+    from d2a_envs.wrappers import IMAGINED_KEY
+
+    frames = []
+    for skip in (True, False):
+        student = checkpoint_student(run, "reach", skip_unread=skip)
+        assert student.env_kwargs.get("read_steps") == ({IMAGINED_KEY: ReadSteps(3, 1)} if skip else None)
+        stored = trained_env_kwargs(run, "reach")
+        collect(CollectConfig(tasks=("reach",), out=str(out / f"skip{skip}"), episodes=1, env_kwargs=stored,
+                              student=student, student_labels=False, max_episode_steps=14, progress=False))
+        frames.append(DemoDataset.open(out / f"skip{skip}").frames())
+    skipped, every = frames
+    assert skipped["point_cloud"].shape[0] == 14 and not skipped["point_cloud"].isnan().any()
+    for key in ("point_cloud", "agent_pos", "state", "action"):
+        assert torch.equal(skipped[key], every[key]), key
 
 
 def test_bench_eval_times_both_settings_and_a_policy_refuses_a_cloud_its_env_skipped(reach_data, tmp_path, capsys):

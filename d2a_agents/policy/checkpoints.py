@@ -29,6 +29,7 @@ from d2a_agents.policy.agent import (
 from d2a_agents.policy.diffusion import Diffusion
 from d2a_envs.defaults import DEFAULT_MAX_EPISODE_STEPS
 from d2a_envs.tasks import get_task
+from d2a_envs.wrappers import IMAGINED_KEY
 
 CHECKPOINT_KIND = "policy"
 CHECKPOINT_NAME = "policy.pt"
@@ -108,13 +109,20 @@ def _trained_task(path: str | Path, payload: dict[str, Any], task: str) -> str:
     return name
 
 
-def checkpoint_student(path: str | Path, task: str, acting: Acting = Acting()) -> Student:
+def checkpoint_student(path: str | Path, task: str, acting: Acting = Acting(), skip_unread: bool = True) -> Student:
     """A checkpoint's EMA policy as the acting student of a DAgger collection on ``task``
-    (:class:`~collectors.experts.Student`), in the env it was trained with."""
-    _, payload = load_policy(path, acting=acting)
+    (:class:`~collectors.experts.Student`), in the env it was trained with. Its second cloud
+    (imagined, or the simulator's look-ahead) is made only at the steps the policy reads it, as
+    in :func:`evaluate_checkpoint` (``skip_unread=False``: at every step); the present cloud,
+    which the data set stores, at every step."""
+    policy, payload = load_policy(path, acting=acting)
     name = _trained_task(path, payload, task)
     path = policy_file(path).resolve()
-    return Student(str(path), functools.partial(load_torchrl_policy, path, acting), eval_env_kwargs(payload, name))
+    env_kwargs = eval_env_kwargs(payload, name)
+    imagined = policy.config.read_steps().get(IMAGINED_KEY)  # None: the policy reads no second cloud
+    if skip_unread and imagined is not None:
+        env_kwargs["read_steps"] = {IMAGINED_KEY: imagined}
+    return Student(str(path), functools.partial(load_torchrl_policy, path, acting), env_kwargs)
 
 
 def trained_env_kwargs(path: str | Path, task: str) -> dict[str, Any]:
