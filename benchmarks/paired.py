@@ -19,12 +19,18 @@ summarised against it too: is ``algo`` above both its control and the baseline? 
 shows how much its policy reads its second cloud (its last perception check, as its cell keeps it,
 or for cells stored before they kept it, its checkpoint in one of ``runs``, the grids' work
 directories), and whether that goes with the difference.
+
+Where the pairs span several settings (a pair's name less its seed: task, demonstrations and the
+grid's settings), each setting with two pairs or more is also tested on its own (Student's paired
+t test, two-sided) and the p-values are adjusted for being read together (Holm): a lead found by
+looking at many settings is then weighed against the number looked at.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import re
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -236,6 +242,64 @@ def summarize_pairs(pairs: list[Pair]) -> PairedSummary:
     )
 
 
+def setting_name(pair_name: str) -> str:
+    """A pair's name less its training seed: the task, demonstrations and settings its seeds share.
+
+    Example:
+        >>> setting_name("push_s3_e5_fresh_d2_num_points128")
+        'push_e5_fresh_d2_num_points128'
+    """
+    return re.sub(r"_s\d+(?=_|$)", "", pair_name, count=1)
+
+
+def paired_t_p_value(differences: list[float]) -> float:
+    """Two-sided p-value of Student's t test that the pairs' mean difference is zero; nan with fewer
+    than two pairs or none of them differing from the others (no spread to test against)."""
+    if len(differences) < 2 or (spread := statistics.stdev(differences)) == 0:
+        return math.nan
+    t = statistics.fmean(differences) / (spread / math.sqrt(len(differences)))
+    return float(2 * student_t.sf(abs(t), len(differences) - 1))
+
+
+def holm_adjusted(p_values: list[float]) -> list[float]:
+    """Holm's step-down adjustment of a family of p-values, in their order: the k-th smallest times
+    the number not yet passed, never below an earlier one's, at most 1 (a nan counts as 1). Any
+    adjusted p under 0.05 holds at 5 % the chance of any false finding in the family."""
+    family = [1.0 if math.isnan(value) else value for value in p_values]
+    adjusted, running = [1.0] * len(family), 0.0
+    for rank, index in enumerate(sorted(range(len(family)), key=family.__getitem__)):
+        running = max(running, min(1.0, (len(family) - rank) * family[index]))
+        adjusted[index] = running
+    return adjusted
+
+
+def settings_lines(pairs: list[Pair], algo: str, control: str) -> list[str]:
+    """Markdown: each setting with two pairs or more (smallest p first), its pairs' summary, the p of
+    its paired t test and that p adjusted over every setting tested (Holm); none where fewer than two
+    settings have two pairs."""
+    groups: dict[str, list[Pair]] = {}
+    for pair in pairs:
+        groups.setdefault(setting_name(pair.name), []).append(pair)
+    tested = {name: group for name, group in groups.items() if len(group) >= 2}
+    if len(tested) < 2:
+        return []
+    p_values = [paired_t_p_value([pair.difference for pair in group]) for group in tested.values()]
+    rows = sorted(zip(tested.items(), p_values, holm_adjusted(p_values), strict=True),
+                  key=lambda row: (math.isnan(row[1]), row[1]))
+    lines = [f"Per setting (a pair's name less its seed; the {len(tested)} settings with two pairs or more): `{algo}` "
+             f"minus `{control}`, Student's paired t test of a zero mean (two-sided p; '-' where the pairs do not "
+             f"differ from one another), and that p adjusted for the {len(tested)} settings read together (Holm).", "",
+             "| setting | pairs | ahead / level / behind | mean difference (points) [95 %] | p | Holm p |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for (name, group), p_value, adjusted in rows:
+        summary = summarize_pairs(group)
+        shown = "-" if math.isnan(p_value) else f"{p_value:.3f}"
+        lines.append(f"| {name} | {summary.pairs} | {summary.wins} / {summary.ties} / {summary.losses} | "
+                     f"{100 * summary.mean:+.1f} [{100 * summary.low:+.1f}, {100 * summary.high:+.1f}] | {shown} | "
+                     f"{adjusted:.3f} |")
+    return lines
+
+
 def report(pairs: list[Pair], config: PairedConfig) -> str:
     """Markdown: one row per pair (with the reference's cell where asked for), then the summary
     over them, and over those with a reference cell, against it."""
@@ -264,6 +328,8 @@ def report(pairs: list[Pair], config: PairedConfig) -> str:
     if referenced:
         lines += ["", f"Against `{config.reference}` on the pairs with its cell: "
                       f"{summary_sentence(referenced, config.algo, config.reference)}"]
+    if settings := settings_lines(pairs, config.algo, config.control):
+        lines += ["", *settings]
     return "\n".join(lines)
 
 

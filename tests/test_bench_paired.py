@@ -15,10 +15,13 @@ from benchmarks.paired import (
     cell_files,
     find_pairs,
     grid_note,
+    holm_adjusted,
     newcombe_interval,
     pair_cells,
+    paired_t_p_value,
     pairs_in,
     report,
+    setting_name,
     summarize_pairs,
 )
 from benchmarks.success import DEFAULT_DEMOS, Cell
@@ -124,6 +127,49 @@ def test_summary_over_pairs_against_a_hand_computation(tmp_path):
     assert summary.treated_interval == pytest.approx((0.6459, 0.7491), abs=1e-4)
     assert summary.control_interval == pytest.approx((0.5774, 0.6859), abs=1e-4)
     assert not summary.intervals_apart
+
+
+def test_holm_adjustment_against_a_hand_computation():
+    # Sorted: 0.005 x 4 = 0.02, 0.01 x 3 = 0.03, 0.03 x 2 = 0.06, 0.04 x 1 = 0.04 -> kept at 0.06.
+    assert holm_adjusted([0.01, 0.04, 0.03, 0.005]) == pytest.approx([0.03, 0.06, 0.06, 0.02])
+    assert holm_adjusted([0.3, math.nan, 0.2]) == pytest.approx([0.6, 1.0, 0.6])  # 0.2 x 3, 0.3 x 2, nan as 1
+    assert holm_adjusted([0.04]) == [0.04] and holm_adjusted([]) == []
+
+
+def test_paired_t_p_value_agrees_with_scipys_one_sample_test():
+    from scipy.stats import ttest_1samp
+
+    differences = [0.08, 0.13, 0.03, 0.08, 0.10]
+    assert paired_t_p_value(differences) == pytest.approx(ttest_1samp(differences, 0.0).pvalue)
+    assert paired_t_p_value([0.2, -0.1, 0.05]) == pytest.approx(ttest_1samp([0.2, -0.1, 0.05], 0.0).pvalue)
+    assert math.isnan(paired_t_p_value([0.1])) and math.isnan(paired_t_p_value([0.0, 0.0, 0.0]))
+
+
+def test_each_setting_with_two_pairs_is_tested_and_adjusted_for_the_others(tmp_path):
+    assert setting_name("push_s12_e5_fresh_d2_num_points128") == "push_e5_fresh_d2_num_points128"
+    assert setting_name("stick-pull_s0") == "stick-pull"
+    for seed, (treated, control) in enumerate([(30, 20), (25, 12), (33, 30)]):  # differences +10, +13, +3
+        _write(tmp_path, f"push_d2a_s{seed}_e5_fresh_d2", treated)
+        _write(tmp_path, f"push_d2a-present_s{seed}_e5_fresh_d2", control)
+    for seed, (treated, control) in enumerate([(80, 90), (70, 60)]):  # -10, +10: no lead
+        _write(tmp_path, f"stick-pull_d2a_s{seed}_e5_fresh_d5", treated)
+        _write(tmp_path, f"stick-pull_d2a-present_s{seed}_e5_fresh_d5", control)
+    _write(tmp_path, "hammer_d2a_s0_e5", 99)  # one pair: not tested on its own
+    _write(tmp_path, "hammer_d2a-present_s0_e5", 98)
+    pairs = find_pairs(cell_files(tmp_path), "d2a", "d2a-present")
+    text = report(pairs, PairedConfig(results=(str(tmp_path),), reference=None))
+    assert "the 2 settings with two pairs or more" in text and "| hammer_e5 |" not in text
+    rows = text.split("Per setting")[1].splitlines()[4:]
+    # Push: differences 0.10, 0.13, 0.03: mean 0.0867, sd 0.0513, t = 2.925 on 2 df, whose two-sided
+    # p is 1 - t / sqrt(t^2 + 2) = 0.0997; half-width 4.3027 x 0.0296 = 0.1275. Stick-Pull: t = 0, p = 1;
+    # half-width 12.706 x 0.1. Holm over the two: 0.0997 x 2, then 1.
+    t = 0.26 / 3 / (math.sqrt(0.0052667 / 2) / math.sqrt(3))
+    assert 1 - t / math.sqrt(t * t + 2) == pytest.approx(0.0997, abs=1e-4)
+    assert rows == ["| push_e5_fresh_d2 | 3 | 3 / 0 / 0 | +8.7 [-4.1, +21.4] | 0.100 | 0.199 |",
+                    "| stick-pull_e5_fresh_d5 | 2 | 1 / 0 / 1 | +0.0 [-127.1, +127.1] | 1.000 | 1.000 |"]
+    # one setting alone: no per-setting section
+    alone = [pair for pair in pairs if pair.treated.task == "push"]
+    assert "Per setting" not in report(alone, PairedConfig(results=(str(tmp_path),), reference=None))
 
 
 def test_pooled_intervals_apart_only_when_they_share_no_point(tmp_path):
