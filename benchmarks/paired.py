@@ -295,8 +295,8 @@ def settings_lines(pairs: list[Pair], algo: str, control: str) -> list[str]:
         summary = summarize_pairs(group)
         shown = "-" if math.isnan(p_value) else f"{p_value:.3f}"
         lines.append(f"| {name} | {summary.pairs} | {summary.wins} / {summary.ties} / {summary.losses} | "
-                     f"{100 * summary.mean:+.1f} [{100 * summary.low:+.1f}, {100 * summary.high:+.1f}] | {shown} | "
-                     f"{adjusted:.3f} |")
+                     f"{signed_points(summary.mean)} [{signed_points(summary.low)}, {signed_points(summary.high)}] | "
+                     f"{shown} | {adjusted:.3f} |")
     return lines
 
 
@@ -333,6 +333,11 @@ def report(pairs: list[Pair], config: PairedConfig) -> str:
     return "\n".join(lines)
 
 
+def signed_points(fraction: float) -> str:
+    """A difference of success fractions in points, signed, one decimal, never "-0.0"."""
+    return f"{round(100 * fraction, 1) + 0.0:+.1f}"
+
+
 def _wins(cell: Cell) -> str:
     return f"{cell.final_wins}/{cell.final_episodes}"
 
@@ -342,7 +347,7 @@ def summary_sentence(pairs: list[Pair], algo: str, control: str) -> str:
     pooled episodes' rates (whether their intervals overlap) and difference, each with its 95 %
     interval."""
     summary, a = summarize_pairs(pairs), f"`{algo}`"
-    interval = (f"[{100 * summary.low:+.1f}, {100 * summary.high:+.1f}] (Student t over pairs)"
+    interval = (f"[{signed_points(summary.low)}, {signed_points(summary.high)}] (Student t over pairs)"
                 if summary.pairs > 1 else "(one pair: no interval)")
     (treated_low, treated_high), (control_low, control_high) = summary.treated_interval, summary.control_interval
     pooled = (f"{100 * summary.pooled_treated:.1f} % [{100 * treated_low:.1f}-{100 * treated_high:.1f}] against "
@@ -352,7 +357,7 @@ def summary_sentence(pairs: list[Pair], algo: str, control: str) -> str:
               f"[{100 * summary.pooled_low:+.1f}, {100 * summary.pooled_high:+.1f}] (Newcombe)")
     plural = "s" if summary.pairs != 1 else ""
     return (f"{summary.pairs} pair{plural} of {a} and `{control}`: {a} ahead in {summary.wins}, level in "
-            f"{summary.ties}, behind in {summary.losses}; mean difference {100 * summary.mean:+.1f} points "
+            f"{summary.ties}, behind in {summary.losses}; mean difference {signed_points(summary.mean)} points "
             f"{interval}; pooled episodes {pooled}.")
 
 

@@ -22,6 +22,7 @@ from benchmarks.paired import (
     pairs_in,
     report,
     setting_name,
+    signed_points,
     summarize_pairs,
 )
 from benchmarks.success import DEFAULT_DEMOS, Cell
@@ -148,6 +149,7 @@ def test_paired_t_p_value_agrees_with_scipys_one_sample_test():
 def test_each_setting_with_two_pairs_is_tested_and_adjusted_for_the_others(tmp_path):
     assert setting_name("push_s12_e5_fresh_d2_num_points128") == "push_e5_fresh_d2_num_points128"
     assert setting_name("stick-pull_s0") == "stick-pull"
+    assert (signed_points(-1e-17), signed_points(0.084), signed_points(-0.0333)) == ("+0.0", "+8.4", "-3.3")
     for seed, (treated, control) in enumerate([(30, 20), (25, 12), (33, 30)]):  # differences +10, +13, +3
         _write(tmp_path, f"push_d2a_s{seed}_e5_fresh_d2", treated)
         _write(tmp_path, f"push_d2a-present_s{seed}_e5_fresh_d2", control)
