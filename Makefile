@@ -22,13 +22,18 @@ test: install
 bench: install
 	$(BIN)/d2a bench envs
 
-# Rewrite every report in docs/ from the cells stored there (nothing is trained or evaluated).
+# Rewrite every report in docs/ from the cells stored there (nothing is trained or evaluated); a grid
+# first copies in the cells of its plan that another grid finished under the same name (--shared-cells).
 OTHER_ROWS := --demos 10 --task stick-pull --task push --task lever-pull --task assembly --task hammer \
 	--algo edm --algo cp --algo flowpolicy --algo dp --algo mp1 --algo dp3
+TABLE1_CELLS := --shared-cells docs/table1/points128/cells
+TABLE4_CELLS := --shared-cells docs/table4/points128/cells
+OTHER_CELLS := --shared-cells docs/other_methods/cells
 reports: install
-	$(BIN)/d2a bench table1 --report --policy-points 128 --results docs/table1/points128
-	$(BIN)/d2a bench table4 --report --policy-points 128 --results docs/table4/points128
-	$(BIN)/d2a bench table4 --report --policy-points 128 $(OTHER_ROWS) --results docs/other_methods
+	$(BIN)/d2a bench table1 --report --policy-points 128 --results docs/table1/points128 $(TABLE4_CELLS) $(OTHER_CELLS)
+	$(BIN)/d2a bench table4 --report --policy-points 128 --results docs/table4/points128 $(TABLE1_CELLS) $(OTHER_CELLS)
+	$(BIN)/d2a bench table4 --report --policy-points 128 $(OTHER_ROWS) --results docs/other_methods $(TABLE1_CELLS) \
+		$(TABLE4_CELLS)
 	$(BIN)/d2a bench table4 --report --policy-points 128 --demos 1 --demos 2 --task push --algo d2a-present \
 		--algo d2a-oracle --results docs/table4/oracle128
 	$(BIN)/d2a bench table4 --report --policy-points 128 --demos 2 --demos 5 --task stick-pull --task push \

@@ -459,6 +459,13 @@ def _take_shared(config: SuccessBenchConfig, task: str, algo: str, seed: int) ->
     return cell
 
 
+def take_shared_cells(config: SuccessBenchConfig, grid: list[tuple[str, str, int]]) -> dict[tuple[str, str, int], Cell]:
+    """The cells of ``grid`` that this grid has not finished and ``config.shared_cells`` holds, copied
+    in as its own (nothing is trained): what a run takes before its first cell, and a report too."""
+    return {key: cell for key in grid
+            if not cell_path(config, *key).exists() and (cell := _take_shared(config, *key)) is not None}
+
+
 def _run_locally(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -> dict[tuple[str, str, int], Cell]:
     """The unfinished cells one after the other in this process, each claimed first (cells
     another process holds are skipped, those it finished meanwhile read back) and stored as
@@ -529,7 +536,7 @@ def run_grid(config: SuccessBenchConfig, grid: list[tuple[str, str, int]]) -> li
     evaluation_interval(config.policy.steps, config.evaluations)  # a count it cannot give fails before any work
     software_render_threads(config.threads)  # before the collections render (a local Ray's workers inherit it)
     finished = {key: read_cell(path) for key in grid if (path := cell_path(config, *key)).exists()}
-    finished |= {key: cell for key in grid if key not in finished and (cell := _take_shared(config, *key)) is not None}
+    finished |= take_shared_cells(config, [key for key in grid if key not in finished])
     for cell in finished.values():
         print(_describe(cell), flush=True)
     todo = [key for key in grid if key not in finished]

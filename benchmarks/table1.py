@@ -43,6 +43,7 @@ from benchmarks.success import (
     read_cell,
     run_grid,
     summarize,
+    take_shared_cells,
 )
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import honest_protocol
@@ -339,13 +340,13 @@ def finished_cells(config: Table1Config, max_seed: int = 10) -> list[Cell]:
 
 
 def run(config: Table1Config = Table1Config(), report_only: bool = False) -> list[Cell]:
-    """Run the grid's missing cells (unless ``report_only``), then print and write the report of
-    every finished cell, and the one-thread hours the grid's cells took and the rest would take at
-    their rate; returns the grid's cells."""
+    """Run the grid's missing cells (``report_only``: only copy in those that ``shared_cells``
+    holds), then print and write the report of every finished cell, and the one-thread hours the
+    grid's cells took and the rest would take at their rate; returns the grid's cells."""
     grid = plan(config)
-    if not report_only:
-        for settings, cells in itertools.groupby(grid, key=lambda key: config.task_cell_config(key[0])):
-            run_grid(settings, list(cells))  # Meta-World's cells share one config; each Adroit task has its own
+    for settings, cells in itertools.groupby(grid, key=lambda key: config.task_cell_config(key[0])):
+        # Meta-World's cells share one config; each Adroit task has its own
+        (take_shared_cells if report_only else run_grid)(settings, list(cells))
     cells = finished_cells(config)
     print(write_report(cells, config))
     planned = set(grid)

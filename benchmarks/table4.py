@@ -39,6 +39,7 @@ from benchmarks.success import (
     read_cell,
     run_grid,
     summarize,
+    take_shared_cells,
 )
 from collectors.atomic import atomic_write_text
 from d2a_agents.policy.agent import ALGORITHMS
@@ -224,13 +225,12 @@ def write_report(cells: list[Cell], config: Table4Config) -> str:
 
 
 def run(config: Table4Config = Table4Config(), report_only: bool = False) -> list[Cell]:
-    """Run the grid's missing cells count by count (unless ``report_only``), then print and
-    write the report of every finished cell (its tasks' and the Table IV tasks') and the CPU
-    time the grid's cells took; returns the grid's cells."""
-    if not report_only:
-        for demos in config.demos:
-            grid = [(task, algo, seed) for count, task, algo, seed in plan(config) if count == demos]
-            run_grid(config.cell_config(demos), grid)
+    """Run the grid's missing cells count by count (``report_only``: only copy in those that
+    ``shared_cells`` holds), then print and write the report of every finished cell (its tasks'
+    and the Table IV tasks') and the CPU time the grid's cells took; returns the grid's cells."""
+    for demos in config.demos:
+        grid = [(task, algo, seed) for count, task, algo, seed in plan(config) if count == demos]
+        (take_shared_cells if report_only else run_grid)(config.cell_config(demos), grid)
     widest = reported(config)
     cells = finished_cells(widest)
     shown = dataclasses.replace(config, demos=widest.demos)  # every count of the paper's layout
