@@ -41,7 +41,8 @@ def add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: str
                              "the first 10 of Table IV's): its cells of methods without a world model are copied, "
                              "not rerun (repeatable)")
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch threads per cell (default 1)")
-    parser.add_argument("--report", action="store_true", help="only write the report of the finished cells")
+    parser.add_argument("--report", action="store_true", help="only write the report of the finished cells "
+                                                              "(those of --shared-cells copied in; nothing is trained)")
     add_world_model_data_options(parser)
     add_ray_option(parser)
 
