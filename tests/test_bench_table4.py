@@ -171,8 +171,8 @@ def test_another_grids_cells_on_the_same_demonstrations_are_copied_not_rerun(tmp
     (tmp_path / "t1" / success.cell_path(bench, "push", "mp1", 1).name).write_text(
         json.dumps(dataclasses.asdict(_cell("push", "mp1", 1, 10, 64))))
     main(["bench", "table4", "--demos", "10", "--task", "push", "--algo", "mp1", "--seed", "0", "--seed", "1",
-          "--results", str(tmp_path / "t4"), "--workdir", str(tmp_path / "work"), "--shared-cells", str(tmp_path / "t1"),
-          "--report"])
+          "--results", str(tmp_path / "t4"), "--workdir", str(tmp_path / "work"),
+          "--shared-cells", str(tmp_path / "t1"), "--report"])
     assert capsys.readouterr().out.count("taken from") == 1
     assert success.read_cell(success.cell_path(bench, "push", "mp1", 1)).final_wins == 64
     assert not (tmp_path / "work").exists()
