@@ -536,7 +536,7 @@ def run_grid(config: SuccessBenchConfig, grid: list[tuple[str, str, int]]) -> li
     evaluation_interval(config.policy.steps, config.evaluations)  # a count it cannot give fails before any work
     software_render_threads(config.threads)  # before the collections render (a local Ray's workers inherit it)
     finished = {key: read_cell(path) for key in grid if (path := cell_path(config, *key)).exists()}
-    finished |= take_shared_cells(config, [key for key in grid if key not in finished])
+    finished |= take_shared_cells(config, grid)  # skips the cells finished here
     for cell in finished.values():
         print(_describe(cell), flush=True)
     todo = [key for key in grid if key not in finished]
