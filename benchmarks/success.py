@@ -59,7 +59,7 @@ from tqdm import tqdm
 
 import d2a_envs
 from collectors.atomic import DirectoryBusyError, atomic_write_text, exclusive_writer
-from collectors.collect import CollectConfig, collect, demonstrations_tag
+from collectors.collect import DART_MAX_ATTEMPTS_FACTOR, CollectConfig, collect, demonstrations_tag
 from collectors.evaluation import honest_protocol, paper_protocol
 from collectors.experts import ExpertSettings, Student
 from collectors.ray_jobs import JobsLost, Lost, as_completed, cluster_gpus, ray_cluster
@@ -67,7 +67,7 @@ from d2a_agents.checkpoint import load_checkpoint
 from d2a_agents.policy.agent import reads_images, uses_imagination
 from d2a_agents.policy.checkpoints import CHECKPOINT_NAME, Acting, checkpoint_student, evaluate_checkpoint
 from d2a_agents.policy.perception import Reliance
-from d2a_agents.policy.train import POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
+from d2a_agents.policy.train import EVALUATION_SEED, POLICY_PRESETS, PolicyPreset, TrainPolicyConfig, train_policy
 from d2a_agents.success_plot import SuccessBar, plot_success_bars
 from d2a_agents.world_model.train import TrainWorldModelConfig, train_world_model
 from d2a_agents.world_model.triplane import CPU_PRESET, WorldModelConfig
@@ -98,6 +98,11 @@ class SuccessBenchConfig:
     # counts collects the largest once, so that 1 of 2 of 5 ... are nested and each world model
     # trains on its policies' demonstrations and validates on the ones after them.
     pool: int | None = None
+    # Env seed of the pool's first attempt (its layouts): another seed, another set of
+    # demonstrations with its own data set, world models and cells (``_pool<seed>``), to see
+    # whether a finding outlives the one set. 0 or, clear of pool 0's and the periodic
+    # evaluations' layouts (EVALUATION_SEED on), from pool x DART_MAX_ATTEMPTS_FACTOR on.
+    demo_seed: int = 0
     # Noisy expert rollouts per task (kept whole, seeds from ROLLOUT_SEED) that the world model
     # trains on beside the demonstrations (0: none); imagining cells then carry ``_wmr<N>``.
     wm_rollouts: int = 0
@@ -149,6 +154,10 @@ class SuccessBenchConfig:
     def __post_init__(self) -> None:
         if self.pool is not None and self.pool < self.demos:
             raise ValueError(f"a pool of {self.pool} demonstrations cannot give cells {self.demos}")
+        span = (self.pool or self.demos) * DART_MAX_ATTEMPTS_FACTOR  # the most seeds a pool's attempts take
+        if self.demo_seed and not span <= self.demo_seed <= EVALUATION_SEED - span:
+            raise ValueError(f"demo_seed must be 0 or within {span}..{EVALUATION_SEED - span}, clear of pool 0's "
+                             f"layouts and the periodic evaluations', not {self.demo_seed}")
         if self.action_draws < 1:
             raise ValueError(f"action_draws must be at least 1, not {self.action_draws}")
         if self.wm_policy_rollouts is not None and not self.wm_rollouts:
@@ -259,7 +268,7 @@ def _dataset(config: SuccessBenchConfig, task: str) -> Path:
         student = _policy_student(config, task)
         source, rollouts = dict(student=student, student_labels=False), f"{rollouts} of {student.name}"
     _when_free(lambda: collect(CollectConfig(
-        tasks=(task,), out=str(data), episodes=config.pool or config.demos, seed=0, append=True,
+        tasks=(task,), out=str(data), episodes=config.pool or config.demos, seed=config.demo_seed, append=True,
         env_kwargs=env_kwargs, dart_noise=config.dart_noise, expert=config.expert,
         progress=config.ray_address is None, ray_address=config.ray_address,
     )), f"{task} demonstrations")
@@ -389,8 +398,10 @@ def _world_model_tag(config: SuccessBenchConfig) -> str:
 
 
 def _demonstrations_tag(config: SuccessBenchConfig) -> str:
-    """Which demonstrations: their DART noise, and the Adroit expert when one was chosen."""
-    return demonstrations_tag(config.dart_noise, config.expert)
+    """Which demonstrations: their DART noise, the Adroit expert when one was chosen, and the
+    pool's first seed when it is not 0."""
+    pool = f"_pool{config.demo_seed}" if config.demo_seed else ""
+    return demonstrations_tag(config.dart_noise, config.expert) + pool
 
 
 def _demos_tag(config: SuccessBenchConfig) -> str:

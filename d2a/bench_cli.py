@@ -43,8 +43,16 @@ def add_grid_options(parser: argparse.ArgumentParser, results: str, workdir: str
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch threads per cell (default 1)")
     parser.add_argument("--report", action="store_true", help="only write the report of the finished cells "
                                                               "(those of --shared-cells copied in; nothing is trained)")
+    add_demo_seed_option(parser)
     add_world_model_data_options(parser)
     add_ray_option(parser)
+
+
+def add_demo_seed_option(parser: argparse.ArgumentParser) -> None:
+    """Which set of demonstrations the cells train on: the pool collected from this env seed on."""
+    parser.add_argument("--demo-seed", type=NON_NEGATIVE, default=None, metavar="SEED",
+                        help="collect the demonstrations from this env seed on (default 0): another seed, another "
+                             "set (e.g. 1000), with its own data, world models and cells (_pool<SEED>)")
 
 
 def add_world_model_data_options(parser: argparse.ArgumentParser) -> None:
@@ -218,6 +226,7 @@ def cmd_bench_success(args: argparse.Namespace) -> None:
         wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise, dart_noise=args.dart_noise,
         wm_policy_rollouts=args.wm_policy_rollouts, wm_policy_seed=args.wm_policy_seed,
         action_draws=args.action_draws, rgb_image_size=args.rgb_image_size, expert=args.expert,
+        demo_seed=args.demo_seed,
     ))
 
 
@@ -228,7 +237,7 @@ def grid_cells(base: Any, args: argparse.Namespace) -> Any:
                           workers=args.workers, shared_cells=tuple(args.shared_cells) if args.shared_cells else None,
                           wm_rollouts=args.wm_rollouts, rollout_noise=args.rollout_noise,
                           wm_policy_rollouts=args.wm_policy_rollouts, wm_policy_seed=args.wm_policy_seed,
-                          world_model=world_model_asked(args, None, base.world_model))
+                          demo_seed=args.demo_seed, world_model=world_model_asked(args, None, base.world_model))
 
 
 def world_model_asked(args: argparse.Namespace, chosen: WorldModelConfig | None,
@@ -489,6 +498,7 @@ def add_bench_commands(commands: Any) -> None:
     bench_success.add_argument("--pool", type=POSITIVE, default=None,
                                help="demonstrations collected per task (default: --demos); a workdir with cells of "
                                     "several counts collects the largest, so world models validate on the rest")
+    add_demo_seed_option(bench_success)
     bench_success.add_argument("--steps", type=POSITIVE, default=None, help="policy training steps (default: preset's)")
     add_policy_options(bench_success)
     bench_success.add_argument("--evaluations", type=POSITIVE, default=None,

@@ -107,6 +107,23 @@ def test_dart_cells_train_on_their_own_demonstrations(tmp_path):
     assert bench.cell_path(config, "reach", "mp1", 0).name.startswith("reach_mp1_s0_e1_d1_dart0.05_")
 
 
+def test_cells_of_another_demo_seed_train_on_another_set_of_demonstrations(tmp_path):
+    config = _tiny_bench(tmp_path, demo_seed=1000)
+    bench.run(config)
+    (collection,) = DemoDataset.open(tmp_path / "data" / "reach_pool1000").metadata.collections
+    assert collection.seed == 1000  # its layouts are env seeds 1000 on, not pool 0's 0 on
+    assert not (tmp_path / "data" / "reach").exists()
+    assert bench.cell_path(config, "reach", "mp1", 0).name.startswith("reach_mp1_s0_e1_d1_pool1000_")
+
+
+@pytest.mark.parametrize("demo_seed", [5, 9999])
+def test_a_demo_seed_whose_layouts_could_meet_another_pools_or_the_evaluations_is_refused(demo_seed):
+    # A pool of 20 may take up to 200 attempts: seeds 0-199 are pool 0's, 9800 on reach the evaluations' 10000.
+    with pytest.raises(ValueError, match="demo_seed"):
+        SuccessBenchConfig(demos=2, pool=20, demo_seed=demo_seed)
+    SuccessBenchConfig(demos=2, pool=20, demo_seed=200)
+
+
 def test_cells_of_a_chosen_adroit_expert_train_on_its_own_demonstrations(tmp_path):
     config = _tiny_bench(tmp_path, tasks=("adroit-pen",), expert="controller")
     bench.run(config)
