@@ -44,6 +44,14 @@ def test_report_in_the_papers_layout_keeps_counts_apart():
     assert _row(text, "paper", 5)[2] == "28 / 50 / - (2 / 1 / -) [paper 32 / 50]"
     assert _row(text, "honest", 10)[2] == "90 / - / - (1) [paper 74 / 85]"
     assert _row(text, "honest", 1)[2] == "- [paper 9 / 17]"
+    assert "of 20 demonstrations per task;" in text  # the default pool, from env seed 0
+
+
+def test_report_names_another_set_of_demonstrations():
+    config = Table4Config(algos=("d2a",))
+    config = dataclasses.replace(config, bench=dataclasses.replace(config.bench, demo_seed=1000))
+    text = report([_cell("push", "d2a", 0, 2, 24)], config)
+    assert "of 20 demonstrations per task (collected from env seed 1000 on);" in text
 
 
 def test_report_only_writes_the_files_from_stored_cells(tmp_path, capsys):
