@@ -115,11 +115,11 @@ def report(cells: list[Cell], config: Table4Config) -> str:
     rows = summaries(cells)
     tasks, algos = columns(cells, config)
     bench = config.cell_config(max(config.demos))
-    pool = f" (collected from env seed {bench.demo_seed} on)" if bench.demo_seed else ""
+    collected = f" (collected from env seed {bench.demo_seed} on)" if bench.demo_seed else ""
     lines = [
         f"Success (%), the paper's Table IV tasks; nested sets of the first N of {config.pool} demonstrations per "
-        f"task{pool}; {bench.policy.steps} steps x batch {bench.policy.batch_size}, {bench.policy.policy.num_points} "
-        f"points per cloud. Paper protocol: mean of the best 5 of {bench.evaluations} evaluations of "
+        f"task{collected}; {bench.policy.steps} steps x batch {bench.policy.batch_size}, "
+        f"{bench.policy.policy.num_points} points per cloud. Paper protocol: mean of the best 5 of {bench.evaluations} evaluations of "
         f"{bench.eval_episodes} episodes; honest: the final checkpoint on {bench.final_episodes} new layouts per "
         f"seed, pooled over seeds. Each entry: {' / '.join(f'`{algo}`' for algo in algos)} (seeds: one count "
         "where every measured method has as many, else each method's), then the paper's MP1 / Ours; - : not "
