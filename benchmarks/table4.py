@@ -119,11 +119,11 @@ def report(cells: list[Cell], config: Table4Config) -> str:
     lines = [
         f"Success (%), the paper's Table IV tasks; nested sets of the first N of {config.pool} demonstrations per "
         f"task{collected}; {bench.policy.steps} steps x batch {bench.policy.batch_size}, "
-        f"{bench.policy.policy.num_points} points per cloud. Paper protocol: mean of the best 5 of {bench.evaluations} evaluations of "
-        f"{bench.eval_episodes} episodes; honest: the final checkpoint on {bench.final_episodes} new layouts per "
-        f"seed, pooled over seeds. Each entry: {' / '.join(f'`{algo}`' for algo in algos)} (seeds: one count "
-        "where every measured method has as many, else each method's), then the paper's MP1 / Ours; - : not "
-        "measured.",
+        f"{bench.policy.policy.num_points} points per cloud. Paper protocol: mean of the best 5 of "
+        f"{bench.evaluations} evaluations of {bench.eval_episodes} episodes; honest: the final checkpoint on "
+        f"{bench.final_episodes} new layouts per seed, pooled over seeds. Each entry: "
+        f"{' / '.join(f'`{algo}`' for algo in algos)} (seeds: one count where every measured method has as many, "
+        "else each method's), then the paper's MP1 / Ours; - : not measured.",
     ]
     for protocol in ("honest", "paper"):
         lines += ["", f"{protocol.capitalize()} protocol:", "", "| demos | " + " | ".join(tasks) + " |",
