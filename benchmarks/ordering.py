@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
+from benchmarks.cells import Cell, read_cell
 from benchmarks.paired import Pair, PairedSummary, cell_files, pairs_in, report_page, split_cell_name, summarize_pairs
-from benchmarks.success import Cell, read_cell
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import wilson_interval
 from d2a_agents.success_plot import save_figure

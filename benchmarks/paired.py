@@ -38,7 +38,7 @@ from pathlib import Path
 from scipy.stats import spearmanr
 from scipy.stats import t as student_t
 
-from benchmarks.success import Cell, read_cell
+from benchmarks.cells import Cell, read_cell
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import wilson_interval
 from d2a_agents.checkpoint import load_checkpoint

@@ -16,7 +16,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from benchmarks.success import Cell, SuccessBenchConfig
+from benchmarks.cells import Cell
+from benchmarks.success import SuccessBenchConfig
 from benchmarks.success import run as run_bench
 from collectors.collect import CollectConfig, collect
 from collectors.ray_jobs import LOCAL, import_ray, ray_cluster

@@ -32,19 +32,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import d2a_envs
+from benchmarks.cells import Cell, cells_csv, progress_line, read_cell, summarize
 from benchmarks.paired import grid_note, pair_cells, summary_sentence
-from benchmarks.success import (
-    Cell,
-    SuccessBenchConfig,
-    cell_path,
-    cells_csv,
-    paper_table_cells,
-    progress_line,
-    read_cell,
-    run_grid,
-    summarize,
-    take_shared_cells,
-)
+from benchmarks.success import SuccessBenchConfig, cell_path, paper_table_cells, run_grid, take_shared_cells
 from collectors.atomic import atomic_write_text
 from collectors.evaluation import honest_protocol
 from d2a_agents.policy.agent import ALGORITHMS

@@ -27,20 +27,9 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+from benchmarks.cells import Cell, Summary, cells_csv, progress_line, read_cell, summarize
 from benchmarks.paired import grid_note
-from benchmarks.success import (
-    Cell,
-    SuccessBenchConfig,
-    Summary,
-    cell_path,
-    cells_csv,
-    paper_table_cells,
-    progress_line,
-    read_cell,
-    run_grid,
-    summarize,
-    take_shared_cells,
-)
+from benchmarks.success import SuccessBenchConfig, cell_path, paper_table_cells, run_grid, take_shared_cells
 from collectors.atomic import atomic_write_text
 from d2a_agents.policy.agent import ALGORITHMS
 from d2a_agents.success_plot import save_figure

@@ -9,6 +9,7 @@ import math
 import pytest
 
 from benchmarks import table4
+from benchmarks.cells import DEFAULT_DEMOS, Cell
 from benchmarks.ordering import OrderingConfig, common_cells, plot, rank, steps
 from benchmarks.paired import (
     PairedConfig,
@@ -25,7 +26,6 @@ from benchmarks.paired import (
     signed_points,
     summarize_pairs,
 )
-from benchmarks.success import DEFAULT_DEMOS, Cell
 from d2a.cli import main
 from d2a_agents.checkpoint import save_checkpoint
 

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 import benchmarks.success as bench
-from benchmarks.success import Cell, SuccessBenchConfig, format_table
+from benchmarks.cells import Cell
+from benchmarks.success import SuccessBenchConfig, format_table
 from collectors.collect import CollectConfig, collect
 from collectors.storage import DatasetError, DemoDataset
 from d2a_agents.checkpoint import load_checkpoint

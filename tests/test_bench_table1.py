@@ -11,7 +11,8 @@ import math
 import pytest
 
 import benchmarks.success as success
-from benchmarks.success import Cell, SuccessBenchConfig
+from benchmarks.cells import Cell, progress_line
+from benchmarks.success import SuccessBenchConfig
 from benchmarks.table1 import Table1Config, group_tasks, paired_by_group, plan, report, run, task_csv
 from collectors.atomic import exclusive_writer
 from d2a.cli import main
@@ -118,11 +119,11 @@ def test_progress_estimates_each_unfinished_cell_at_its_methods_rate():
     with no finished cell, counts at the mean of all three (1.5 h / 3 = 0.5 h)."""
     slow = dataclasses.replace(_cell("push", "d2a", 0, 50), train_seconds=3000.0, final_seconds=600.0)
     cells = [_cell("push", "dp3", 0, 50), _cell("push", "dp3", 1, 50), slow]
-    line = success.progress_line(cells, ["d2a", "dp3", "mp1", "d2a", "dp3", "dp3", "d2a"])  # 3 of them finished
+    line = progress_line(cells, ["d2a", "dp3", "mp1", "d2a", "dp3", "dp3", "d2a"])  # 3 of them finished
     assert line.startswith("3 of 7 cells finished, 1.5 one-thread hours")
     assert "the other 4 at their method's mean rate: about 2.8 more" in line  # 2 x 1 + 0.25 + 0.5 = 2.75
     assert "(2 `d2a` x 1.00 h, 1 `dp3` x 0.25 h, 1 `mp1` x 0.50 h)" in line
-    finished = success.progress_line(cells, ["dp3", "dp3", "d2a"])
+    finished = progress_line(cells, ["dp3", "dp3", "d2a"])
     assert finished.startswith("3 of 3 cells finished, 1.5 one-thread hours") and "mean rate" not in finished
 
 

@@ -7,7 +7,8 @@ import dataclasses
 import pytest
 
 import benchmarks.success as success
-from benchmarks.success import Cell, cell_path
+from benchmarks.cells import Cell, read_cell
+from benchmarks.success import cell_path
 from benchmarks.table4 import Table4Config, plan, report, run
 from d2a.cli import main
 
@@ -171,7 +172,7 @@ def test_another_grids_cells_on_the_same_demonstrations_are_copied_not_rerun(tmp
           "--seed", "0", "--results", str(tmp_path / "t4"), "--workdir", str(tmp_path / "work"),
           "--shared-cells", str(tmp_path / "t1")])
     assert capsys.readouterr().out.count("taken from") == 2
-    assert success.read_cell(success.cell_path(bench, "push", "d2a-present", 0)).final_wins == 71  # now its own
+    assert read_cell(success.cell_path(bench, "push", "d2a-present", 0)).final_wins == 71  # now its own
     assert not (tmp_path / "work" / "data").exists()
     assert success._take_shared(bench, "push", "d2a", 0) is None
     assert not success.cell_path(bench, "push", "d2a", 0).exists()
@@ -182,5 +183,5 @@ def test_another_grids_cells_on_the_same_demonstrations_are_copied_not_rerun(tmp
           "--results", str(tmp_path / "t4"), "--workdir", str(tmp_path / "work"),
           "--shared-cells", str(tmp_path / "t1"), "--report"])
     assert capsys.readouterr().out.count("taken from") == 1
-    assert success.read_cell(success.cell_path(bench, "push", "mp1", 1)).final_wins == 64
+    assert read_cell(success.cell_path(bench, "push", "mp1", 1)).final_wins == 64
     assert not (tmp_path / "work").exists()
