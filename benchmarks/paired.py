@@ -275,13 +275,21 @@ def holm_adjusted(p_values: list[float]) -> list[float]:
 
 def settings_lines(pairs: list[Pair], algo: str, control: str) -> list[str]:
     """Markdown: each setting with two pairs or more (smallest p first), its pairs' summary, the p of
-    its paired t test and that p adjusted over every setting tested (Holm); none where fewer than two
-    settings have two pairs."""
+    its paired t test and that p adjusted over every setting tested (Holm). A setting tested alone
+    (a replication, say) gets one sentence: its p two-sided and one-sided in the direction of its
+    mean, nothing to adjust for; none where no setting has two pairs."""
     groups: dict[str, list[Pair]] = {}
     for pair in pairs:
         groups.setdefault(setting_name(pair.name), []).append(pair)
     tested = {name: group for name, group in groups.items() if len(group) >= 2}
-    if len(tested) < 2:
+    if len(tested) == 1:
+        (name, group), = tested.items()
+        p_value = paired_t_p_value([pair.difference for pair in group])
+        shown = ("no p (the pairs do not differ from one another)" if math.isnan(p_value) else
+                 f"two-sided p = {p_value:.3f}, one-sided in the direction of its mean p = {p_value / 2:.3f}")
+        return [f"One setting with two pairs or more ({name}, {len(group)} pairs): Student's paired t test of a "
+                f"zero mean difference, {shown}."]
+    if not tested:
         return []
     p_values = [paired_t_p_value([pair.difference for pair in group]) for group in tested.values()]
     rows = sorted(zip(tested.items(), p_values, holm_adjusted(p_values), strict=True),

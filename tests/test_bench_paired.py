@@ -169,9 +169,15 @@ def test_each_setting_with_two_pairs_is_tested_and_adjusted_for_the_others(tmp_p
     assert 1 - t / math.sqrt(t * t + 2) == pytest.approx(0.0997, abs=1e-4)
     assert rows == ["| push_e5_fresh_d2 | 3 | 3 / 0 / 0 | +8.7 [-4.1, +21.4] | 0.100 | 0.199 |",
                     "| stick-pull_e5_fresh_d5 | 2 | 1 / 0 / 1 | +0.0 [-127.1, +127.1] | 1.000 | 1.000 |"]
-    # one setting alone: no per-setting section
-    alone = [pair for pair in pairs if pair.treated.task == "push"]
-    assert "Per setting" not in report(alone, PairedConfig(results=(str(tmp_path),), reference=None))
+    # one setting alone (a replication): its p in one sentence, two-sided and halved, nothing to adjust
+    alone = report([pair for pair in pairs if pair.treated.task == "push"],
+                   PairedConfig(results=(str(tmp_path),), reference=None))
+    assert "Per setting" not in alone
+    assert ("One setting with two pairs or more (push_e5_fresh_d2, 3 pairs): Student's paired t test of a zero "
+            "mean difference, two-sided p = 0.100, one-sided in the direction of its mean p = 0.050.") in alone
+    hammer = report([pair for pair in pairs if pair.treated.task == "hammer"],
+                    PairedConfig(results=(str(tmp_path),), reference=None))
+    assert "One setting" not in hammer and "Per setting" not in hammer  # one pair: nothing to test
 
 
 def test_pooled_intervals_apart_only_when_they_share_no_point(tmp_path):
