@@ -13,6 +13,7 @@ import pytest
 import torch
 
 import benchmarks.success as bench
+from benchmarks.cells import Cell
 from collectors.collect import CollectConfig, collect
 from collectors.evaluation import evaluate
 from collectors.experts import make_expert
@@ -83,7 +84,7 @@ def test_a_two_cell_bench_on_ray_gives_the_local_cells(ray_instance, tmp_path):
     local = bench.run(config)
     on_ray = bench.run(dataclasses.replace(config, workdir=str(tmp_path / "ray"), ray_address="local"))
 
-    def outcome(cell: bench.Cell) -> tuple:
+    def outcome(cell: Cell) -> tuple:
         return cell.task, cell.algo, cell.seed, cell.periodic, cell.final_wins, cell.final_episodes
 
     assert [outcome(cell) for cell in on_ray] == [outcome(cell) for cell in local]
