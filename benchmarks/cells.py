@@ -2,8 +2,9 @@
 
 A cell is one (task, method, seed) training run's outcome as the grids store it
 (``cells/<name>.json``): its periodic evaluations (the paper's protocol), its final checkpoint's
-evaluation (the honest protocol), its times and its perception check. The reports (``d2a bench
-table1``, ``table4``, ``paired``, ``order``) read cells without the training code.
+evaluation (the honest protocol), its times and its perception check. Every grid's report reads
+cells through this module; ``d2a bench paired`` and ``d2a bench order`` need nothing else of the
+grids, so they import no training code.
 """
 
 from __future__ import annotations
