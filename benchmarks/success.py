@@ -75,6 +75,7 @@ PAPER_REFERENCE = {
     "lever-pull": (81, 85), "assembly": (98, 100), "push": (74, 85), "stick-pull": (74, 81),
     "adroit-hammer": (100, 100), "adroit-door": (69, 74), "adroit-pen": (58, 63),
 }
+
 FINAL_JOURNAL = "final_evaluation.jsonl"  # in the run directory: the final evaluation's finished episodes
 ROLLOUT_SEED = 50_000  # first layout of the world model's rollouts: apart from demonstrations and evaluations
 
