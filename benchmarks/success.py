@@ -433,10 +433,11 @@ def take_shared_cells(config: SuccessBenchConfig, grid: list[tuple[str, str, int
 def _run_locally(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -> dict[tuple[str, str, int], Cell]:
     """The unfinished cells one after the other in this process, each claimed first (cells
     another process holds are skipped, those it finished meanwhile read back) and stored as
-    it finishes."""
+    it finishes. A task's world model is built by its first cell that reads one, so a process
+    whose cell reads none trains it while another process writes the world model."""
     done = {}
     datasets: dict[str, Path] = {}
-    world_models: dict[str, Path | None] = {}
+    world_models: dict[str, Path] = {}
     runs = Path(config.workdir) / "runs"
     for task, algo, seed in todo:
         name = _cell_name(config, task, algo, seed)
@@ -450,10 +451,11 @@ def _run_locally(config: SuccessBenchConfig, todo: list[tuple[str, str, int]]) -
                     continue
                 if task not in datasets:  # once per task: the collection check opens the data set and an env
                     datasets[task] = _dataset(config, task)
-                    world_models[task] = (_world_model(config, task, datasets[task])
-                                          if any(map(uses_imagination, config.algos)) else None)
+                if uses_imagination(algo) and task not in world_models:
+                    world_models[task] = _world_model(config, task, datasets[task])
                 print(f"training {algo} on {task}, seed {seed}", flush=True)
-                done[task, algo, seed] = cell = run_cell(config, task, algo, seed, datasets[task], world_models[task])
+                done[task, algo, seed] = cell = run_cell(config, task, algo, seed, datasets[task],
+                                                         world_models.get(task))
                 _store(config, cell)
                 print(_describe(cell), flush=True)
         except DirectoryBusyError:

@@ -207,6 +207,20 @@ def test_a_cell_another_process_holds_is_skipped(tmp_path, monkeypatch):
     assert trained == [1]
 
 
+def test_only_a_cell_that_imagines_builds_the_world_model(tmp_path, monkeypatch):
+    """A process whose cell reads no world model trains it at once, while another writes the model."""
+    config = SuccessBenchConfig(tasks=("reach",), algos=("mp1", "d2a", "d2a-present"), seeds=(0,),
+                                workdir=str(tmp_path))
+    events = []
+    monkeypatch.setattr(success, "_dataset", lambda config, task: tmp_path / "data" / task)
+    monkeypatch.setattr(success, "_world_model", lambda config, task, data: events.append("world model") or
+                        tmp_path / "wm.pt")
+    monkeypatch.setattr(success, "run_cell", lambda config, task, algo, seed, data, world_model:
+                        events.append((algo, world_model)) or _cell(task, algo, seed, 10))
+    success.run_grid(config, [("reach", "mp1", 0), ("reach", "d2a", 0), ("reach", "d2a-present", 0)])
+    assert events == [("mp1", None), "world model", ("d2a", tmp_path / "wm.pt"), ("d2a-present", tmp_path / "wm.pt")]
+
+
 def test_unknown_group_is_refused():
     with pytest.raises(ValueError, match="unknown group"):
         Table1Config(groups=("impossible",))
