@@ -42,7 +42,8 @@ reports: install
 		--wm-rollouts 20 --wm-policy-rollouts d2a --results docs/table4/policyrollouts128
 	$(BIN)/d2a bench table4 --report --policy-points 128 --demos 2 --task push --demo-seed 1000 --algo d2a \
 		--algo d2a-present --algo mp1 --results docs/table4/pool1000
-	$(BIN)/d2a bench table4 --report --policy-points 256 --demos 5 --task stick-pull --algo mp1 --results docs/table4/points256
+	$(BIN)/d2a bench table4 --report --policy-points 256 --demos 5 --task stick-pull --algo mp1 \
+		--results docs/table4/points256
 	$(BIN)/d2a bench paired --results docs/table1/points128 --results docs/table4/points128 --results docs/table4 \
 		--markdown docs/imagination_pairs.md --plot docs/imagination_pairs.png
 	$(BIN)/d2a bench order --results docs/other_methods --order dp cp dp3 flowpolicy mp1 \
