@@ -76,6 +76,22 @@ def is_lock_file(path: Path) -> bool:
     return path.name.startswith(".") and path.name.endswith(".lock")
 
 
+def writer_active(directory: str | Path) -> bool:
+    """Whether a live process holds one of ``directory``'s writer locks (a dead one's lock is free).
+
+    Probing takes the lock for an instant and releases it; it never creates a lock file."""
+    for entry in Path(directory).iterdir():
+        if not is_lock_file(entry):
+            continue
+        with open(entry) as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            fcntl.flock(handle, fcntl.LOCK_UN)
+    return False
+
+
 def holds_only_lock(directory: str | Path) -> bool:
     """Whether ``directory`` is empty but for writer locks (an untouched output directory)."""
     return all(is_lock_file(entry) for entry in Path(directory).iterdir())

@@ -30,7 +30,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 
-from collectors.atomic import atomic_write_text, holds_only_lock, is_lock_file
+from collectors.atomic import DirectoryBusyError, atomic_write_text, holds_only_lock, is_lock_file, writer_active
 from d2a_envs.factory import env_crop_box
 from d2a_envs.wrappers import IMAGE_KEY
 
@@ -162,11 +162,23 @@ def _new_buffer(directory: Path, capacity: int) -> TensorDictReplayBuffer:
     return TensorDictReplayBuffer(storage=storage, batch_size=1)
 
 
+def _looks_foreign(directory: Path) -> bool:
+    return (directory.exists() and not holds_only_lock(directory)
+            and not DemoDataset.is_dataset(directory) and not (directory / BUFFER_DIR).exists())
+
+
 def refuse_foreign(directory: Path) -> None:
-    """Refuse to write into a directory that holds files but is not a D2A data set."""
-    if directory.exists() and not holds_only_lock(directory):
-        if not DemoDataset.is_dataset(directory) and not (directory / BUFFER_DIR).exists():
-            raise DatasetError(f"refusing to write into {directory}: it holds files but is not a D2A data set")
+    """Refuse to write into a directory that holds files but is not a D2A data set.
+
+    A directory whose writer lock a live process holds is busy, not foreign: it may be a data set
+    being created (its first files appear before its metadata). That raises
+    :class:`~collectors.atomic.DirectoryBusyError`, which a caller can wait out."""
+    if not _looks_foreign(directory):
+        return
+    if writer_active(directory):
+        raise DirectoryBusyError(f"another process is writing to {directory}; wait for it to finish")
+    if _looks_foreign(directory):  # looked again: its writer may have finished between the two looks
+        raise DatasetError(f"refusing to write into {directory}: it holds files but is not a D2A data set")
 
 
 class DemoDataset:

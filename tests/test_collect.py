@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from collectors.atomic import LOCK_NAME, DirectoryBusyError, exclusive_writer
 from collectors.collect import CollectConfig, collect
 from collectors.storage import METADATA_FILE, DatasetError, DemoDataset
 from d2a_envs.wrappers import SeedEachReset
@@ -74,6 +75,19 @@ def test_existing_output_is_refused_without_append_or_overwrite(reach_dataset, t
         collect(config(foreign, append=True))
     assert (foreign / "notes.txt").read_text() == "mine"
     assert [p.name for p in foreign.iterdir()] == ["notes.txt"]  # not even a lock file was left
+
+
+def test_a_data_set_being_created_by_another_writer_is_busy_not_foreign(tmp_path):
+    """Two runs that start one collection together: the second finds the first's lock and its
+    metadata not yet renamed into place. It must wait (busy), not refuse the directory as foreign."""
+    out = tmp_path / "pool"
+    with exclusive_writer(out):  # the first writer, between its lock and its metadata
+        (out / f"{METADATA_FILE}.tmp").write_text("{")
+        with pytest.raises(DirectoryBusyError):
+            collect(config(out, append=True))
+    with pytest.raises(DatasetError, match="not a D2A data set"):  # its writer died there: foreign
+        collect(config(out, append=True))
+    assert sorted(p.name for p in out.iterdir()) == sorted([LOCK_NAME, f"{METADATA_FILE}.tmp"])
 
 
 def test_unknown_tasks_are_refused_before_any_file_is_written(tmp_path):
