@@ -42,6 +42,8 @@ reports: install
 		--wm-rollouts 20 --wm-policy-rollouts d2a --results docs/table4/policyrollouts128
 	$(BIN)/d2a bench table4 --report --policy-points 128 --demos 2 --task push --demo-seed 1000 --algo d2a \
 		--algo d2a-present --algo mp1 --results docs/table4/pool1000
+	$(BIN)/d2a bench table4 --report --policy-points 128 --demos 2 --task push --demo-seed 2000 --algo d2a \
+		--algo d2a-present --seed 0 --seed 1 --seed 2 --seed 3 --seed 4 --results docs/table4/pool2000
 	$(BIN)/d2a bench table4 --report --policy-points 256 --demos 5 --task stick-pull --algo mp1 \
 		--results docs/table4/points256
 	$(BIN)/d2a bench paired --results docs/table1/points128 --results docs/table4/points128 --results docs/table4 \
