@@ -47,6 +47,10 @@ LOCK_NAME = ".d2a-writer.lock"
 class DirectoryBusyError(ValueError):
     """Another process holds the directory's writer lock."""
 
+    @classmethod
+    def of(cls, directory: str | Path) -> DirectoryBusyError:
+        return cls(f"another process is writing to {directory}; wait for it to finish")
+
 
 @contextmanager
 def exclusive_writer(directory: str | Path, lock_name: str = LOCK_NAME) -> Iterator[Path]:
@@ -67,7 +71,7 @@ def exclusive_writer(directory: str | Path, lock_name: str = LOCK_NAME) -> Itera
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise DirectoryBusyError(f"another process is writing to {directory}; wait for it to finish") from None
+            raise DirectoryBusyError.of(directory) from None
         yield directory
 
 

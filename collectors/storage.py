@@ -167,18 +167,21 @@ def _looks_foreign(directory: Path) -> bool:
             and not DemoDataset.is_dataset(directory) and not (directory / BUFFER_DIR).exists())
 
 
+def _refuse_if_foreign(directory: Path) -> None:
+    """The check for a caller that holds the directory's writer lock (no other writer can be in it)."""
+    if _looks_foreign(directory):
+        raise DatasetError(f"refusing to write into {directory}: it holds files but is not a D2A data set")
+
+
 def refuse_foreign(directory: Path) -> None:
     """Refuse to write into a directory that holds files but is not a D2A data set.
 
     A directory whose writer lock a live process holds is busy, not foreign: it may be a data set
     being created (its first files appear before its metadata). That raises
     :class:`~collectors.atomic.DirectoryBusyError`, which a caller can wait out."""
-    if not _looks_foreign(directory):
-        return
-    if writer_active(directory):
-        raise DirectoryBusyError(f"another process is writing to {directory}; wait for it to finish")
-    if _looks_foreign(directory):  # looked again: its writer may have finished between the two looks
-        raise DatasetError(f"refusing to write into {directory}: it holds files but is not a D2A data set")
+    if _looks_foreign(directory) and writer_active(directory):
+        raise DirectoryBusyError.of(directory)
+    _refuse_if_foreign(directory)  # looked again: its writer may have finished between the two looks
 
 
 class DemoDataset:
@@ -213,7 +216,7 @@ class DemoDataset:
         if directory.exists() and not holds_only_lock(directory):
             if not overwrite:
                 raise DatasetError(f"{directory} already holds files; pass --append to add to it or --overwrite")
-            refuse_foreign(directory)
+            _refuse_if_foreign(directory)  # the caller may hold the lock: its own lock is not another writer
             for entry in directory.iterdir():
                 if not is_lock_file(entry):
                     shutil.rmtree(entry) if entry.is_dir() else entry.unlink()

@@ -85,6 +85,8 @@ def test_a_data_set_being_created_by_another_writer_is_busy_not_foreign(tmp_path
         (out / f"{METADATA_FILE}.tmp").write_text("{")
         with pytest.raises(DirectoryBusyError):
             collect(config(out, append=True))
+        with pytest.raises(DatasetError, match="not a D2A data set"):  # the lock's holder sees no other writer
+            DemoDataset.create(out, capacity=10, overwrite=True)
     with pytest.raises(DatasetError, match="not a D2A data set"):  # its writer died there: foreign
         collect(config(out, append=True))
     assert sorted(p.name for p in out.iterdir()) == sorted([LOCK_NAME, f"{METADATA_FILE}.tmp"])
